@@ -1,0 +1,283 @@
+"""Robot model: a Pinocchio model with its tool frame, limits and joint friction.
+
+``load_robot`` is the single entry point.  Everything numeric here is plain
+Pinocchio; the symbolic twin lives in :mod:`qpnso.symbolic`.
+
+Conventions (Pinocchio's):
+* ``q`` in rad, ``dq`` in rad/s, torques in N·m;
+* the tool Jacobian is ``LOCAL_WORLD_ALIGNED``: the 6×nq matrix that maps ``dq``
+  to the tool point's linear velocity (rows 0–2, m/s) and the tool's angular
+  velocity (rows 3–5, rad/s), both expressed in the world frame (METHOD §2).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pinocchio as pin
+
+from qpnso.errors import (
+    FrameNotFoundError,
+    InputError,
+    JointLimitError,
+    ModelError,
+    RobotNotFoundError,
+)
+
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+"""Folder of the robot description files shipped with qpnso."""
+
+SHIPPED_URDF = {"lwr4p": "lwr4p.urdf", "iiwa14": "iiwa14.urdf"}
+OPTIONAL_ROBOTS = ("panda",)
+DEFAULT_TOOL_FRAME = {"panda": "panda_link8"}
+TOOL_FRAME_NAME = "qpnso_tool"
+"""Name of the frame qpnso adds at the tool point (tool frame × tool offset)."""
+
+
+@dataclass(frozen=True)
+class JointFriction:
+    """Smooth Coulomb joint friction [M 23]: τf = τmax·(2/π)·atan(β·dq).
+
+    ``tau_max`` (N·m) is the sliding torque, ``beta`` (s/rad) the slope
+    parameter: dτf/ddq at rest is τmax·β·2/π.
+    """
+
+    tau_max: np.ndarray
+    beta: np.ndarray
+
+    def torque(self, dq: np.ndarray) -> np.ndarray:
+        """Friction torque (N·m) at joint velocity ``dq`` (rad/s)."""
+        return self.tau_max * (2.0 / np.pi) * np.arctan(self.beta * dq)
+
+
+def as_vector(x: object, n: int, name: str) -> np.ndarray:
+    """Return ``x`` as a finite float vector of length ``n`` or raise InputError."""
+    try:
+        v = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be a numeric vector of length {n}: {exc}") from None
+    if v.ndim == 2 and 1 in v.shape:
+        v = v.reshape(-1)
+    if v.shape != (n,):
+        raise InputError(f"{name} must have shape ({n},), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        bad = np.flatnonzero(~np.isfinite(v)).tolist()
+        raise InputError(f"{name} contains NaN or inf at index {bad}")
+    return v
+
+
+class Robot:
+    """A serial arm: Pinocchio model and data, limits, tool frame and friction.
+
+    Attributes use SI units: ``q_min``, ``q_max`` (rad), ``dq_max`` (rad/s),
+    ``tau_limit`` (N·m).  ``tool_frame_id`` is the Pinocchio frame at the tool
+    point.  ``data`` is the model's scratch data, reused by every call (not
+    thread-safe: give each thread its own ``Robot``).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        model: pin.Model,
+        tool_frame_id: int,
+        friction: JointFriction,
+        source: str = "",
+    ) -> None:
+        self.name = name
+        self.model = model
+        self.data = model.createData()
+        self.tool_frame_id = tool_frame_id
+        self.friction = friction
+        self.source = source
+        self.nq = model.nq
+        self.q_min = np.array(model.lowerPositionLimit, dtype=float)
+        self.q_max = np.array(model.upperPositionLimit, dtype=float)
+        self.dq_max = np.array(model.velocityLimit, dtype=float)
+        self.tau_limit = np.array(model.effortLimit, dtype=float)
+        self._check_model()
+
+    def _check_model(self) -> None:
+        if self.model.nq != self.model.nv:
+            raise ModelError(f"{self.name}: only revolute/prismatic joints are supported (nq != nv)")
+        if not np.all(np.isfinite(self.q_min)) or not np.all(np.isfinite(self.q_max)):
+            raise ModelError(f"{self.name}: every joint needs finite position limits")
+        if np.any(self.q_min >= self.q_max):
+            raise ModelError(f"{self.name}: a lower position limit is not below the upper one")
+        if np.any(self.dq_max <= 0):
+            raise ModelError(f"{self.name}: every joint needs a positive velocity limit")
+
+    # ------------------------------------------------------------------ input
+    @property
+    def joint_names(self) -> list[str]:
+        """Names of the actuated joints, base to tip."""
+        return [str(n) for n in self.model.names[1:]]
+
+    def check_q(self, q: object, name: str = "q", tol: float = 1e-9) -> np.ndarray:
+        """Validate a configuration: shape (nq,), finite, within joint limits (rad)."""
+        v = as_vector(q, self.nq, name)
+        low = v < self.q_min - tol
+        high = v > self.q_max + tol
+        if np.any(low | high):
+            k = int(np.flatnonzero(low | high)[0])
+            raise JointLimitError(
+                f"{name}[{k}] ({self.joint_names[k]}) = {np.degrees(v[k]):.3f} deg is outside "
+                f"its limits [{np.degrees(self.q_min[k]):.1f}, {np.degrees(self.q_max[k]):.1f}] deg"
+            )
+        return v
+
+    def random_q(self, rng: np.random.Generator, margin: float = 0.0) -> np.ndarray:
+        """A configuration drawn uniformly within the limits shrunk by ``margin`` rad."""
+        return rng.uniform(self.q_min + margin, self.q_max - margin)
+
+    # ------------------------------------------------------------- kinematics
+    def tool_pose(self, q: object) -> pin.SE3:
+        """Pose of the tool frame in the world (``pinocchio.SE3``, metres)."""
+        qv = as_vector(q, self.nq, "q")
+        pin.framesForwardKinematics(self.model, self.data, qv)
+        return pin.SE3(self.data.oMf[self.tool_frame_id])
+
+    def jacobian(self, q: object) -> np.ndarray:
+        """6×nq tool Jacobian, world-aligned at the tool point, linear rows first."""
+        qv = as_vector(q, self.nq, "q")
+        return pin.computeFrameJacobian(
+            self.model, self.data, qv, self.tool_frame_id, pin.LOCAL_WORLD_ALIGNED
+        ).copy()
+
+    def joint_placement(self, q: object, joint: int) -> pin.SE3:
+        """World pose of joint ``joint``'s frame (1-based Pinocchio joint index)."""
+        qv = as_vector(q, self.nq, "q")
+        pin.forwardKinematics(self.model, self.data, qv)
+        return pin.SE3(self.data.oMi[joint])
+
+    # --------------------------------------------------------------- dynamics
+    def mass_matrix(self, q: object) -> np.ndarray:
+        """Joint-space inertia matrix A(q) (nq×nq, kg·m²), symmetric."""
+        qv = as_vector(q, self.nq, "q")
+        pin.crba(self.model, self.data, qv)
+        a = self.data.M.copy()
+        return np.triu(a) + np.triu(a, 1).T
+
+    def gravity(self, q: object) -> np.ndarray:
+        """Gravity torques g(q) (N·m): the torque that holds the arm still."""
+        qv = as_vector(q, self.nq, "q")
+        return pin.computeGeneralizedGravity(self.model, self.data, qv).copy()
+
+    def friction_torque(self, dq: object) -> np.ndarray:
+        """Joint friction torques (N·m) of the smooth Coulomb model [M 23]."""
+        return self.friction.torque(as_vector(dq, self.nq, "dq"))
+
+    def __repr__(self) -> str:
+        return f"Robot({self.name!r}, nq={self.nq}, tool={self.model.frames[self.tool_frame_id].name!r})"
+
+
+# ---------------------------------------------------------------------- loading
+def load_robot(
+    name_or_path: str | Path = "lwr4p",
+    tool_frame: str | None = None,
+    tool_offset: object = None,
+    friction: JointFriction | None = None,
+) -> Robot:
+    """Load a shipped robot (``"lwr4p"``, ``"iiwa14"``, ``"panda"``) or a URDF file.
+
+    ``tool_frame`` names the frame the tool is mounted on (default ``"tool"``,
+    the flange, for shipped URDFs; ``"panda_link8"`` for the Panda).
+    ``tool_offset`` is the tool point in that frame: a 3-vector (m) or a
+    ``pinocchio.SE3``.  ``friction`` overrides the per-joint friction of
+    ``models/friction.json``.
+    """
+    name, model, source = _load_model(name_or_path)
+    frame_name = tool_frame or DEFAULT_TOOL_FRAME.get(name, "tool")
+    tool_id = _add_tool_frame(model, frame_name, _as_se3(tool_offset))
+    return Robot(name, model, tool_id, friction or _default_friction(name, model), source)
+
+
+def _load_model(name_or_path: str | Path) -> tuple[str, pin.Model, str]:
+    key = str(name_or_path)
+    if key in SHIPPED_URDF:
+        path = MODELS_DIR / SHIPPED_URDF[key]
+        return key, _model_from_urdf(path), str(path)
+    if key in OPTIONAL_ROBOTS:
+        return key, _panda_model(), "example-robot-data"
+    path = Path(key)
+    if path.suffix.lower() == ".urdf" or path.exists():
+        return path.stem, _model_from_urdf(path), str(path)
+    known = ", ".join([*SHIPPED_URDF, *OPTIONAL_ROBOTS])
+    raise RobotNotFoundError(f"unknown robot {key!r}: give one of {known} or a URDF file path")
+
+
+def _model_from_urdf(path: Path) -> pin.Model:
+    if not path.is_file():
+        raise RobotNotFoundError(f"URDF file not found: {path}")
+    try:
+        return pin.buildModelFromUrdf(str(path))
+    except (RuntimeError, ValueError) as exc:
+        raise ModelError(f"cannot parse URDF {path}: {exc}") from None
+
+
+def _panda_model() -> pin.Model:
+    try:
+        import example_robot_data as erd
+    except ImportError:
+        raise RobotNotFoundError(
+            "robot 'panda' needs the optional package example-robot-data "
+            "(pip install 'qpnso[robots]')"
+        ) from None
+    full = erd.load("panda").model
+    fingers = [full.getJointId(n) for n in full.names if "finger" in n]
+    return pin.buildReducedModel(full, fingers, pin.neutral(full)) if fingers else full
+
+
+def _as_se3(offset: object) -> pin.SE3:
+    if offset is None:
+        return pin.SE3.Identity()
+    if isinstance(offset, pin.SE3):
+        return pin.SE3(offset)
+    return pin.SE3(np.eye(3), as_vector(offset, 3, "tool_offset"))
+
+
+def _add_tool_frame(model: pin.Model, frame_name: str, offset: pin.SE3) -> int:
+    if not model.existFrame(frame_name):
+        names = [f.name for f in model.frames if f.type in (pin.FrameType.BODY, pin.FrameType.OP_FRAME)]
+        raise FrameNotFoundError(f"unknown tool frame {frame_name!r}; frames in the model: {names}")
+    parent_id = model.getFrameId(frame_name)
+    parent = model.frames[parent_id]
+    frame = pin.Frame(
+        TOOL_FRAME_NAME, parent.parentJoint, parent_id, parent.placement * offset, pin.FrameType.OP_FRAME
+    )
+    return model.addFrame(frame)
+
+
+def _default_friction(name: str, model: pin.Model) -> JointFriction:
+    """Friction of ``models/friction.json`` for shipped robots, else the URDF's.
+
+    For a user URDF, τmax is the URDF ``<dynamics friction>`` where given
+    (1.5 N·m otherwise) and β the LWR4+ default.
+    """
+    table = load_friction_table()
+    if name in table:
+        entry = table[name]
+        return friction_from_lists(entry["tau_max_Nm"], entry["beta_s_per_rad"], model.nv)
+    default = table.get("lwr4p", {"tau_max_Nm": [1.5], "beta_s_per_rad": [20.0]})
+    tau = np.where(np.asarray(model.friction) > 0, model.friction, default["tau_max_Nm"][0])
+    return friction_from_lists(tau, [default["beta_s_per_rad"][0]] * model.nv, model.nv)
+
+
+def load_friction_table(path: Path | None = None) -> dict:
+    """The per-robot friction parameters of ``models/friction.json``."""
+    p = path or MODELS_DIR / "friction.json"
+    if not p.is_file():
+        return {}
+    return json.loads(p.read_text())
+
+
+def friction_from_lists(tau_max: Sequence[float], beta: Sequence[float], n: int) -> JointFriction:
+    """Build a :class:`JointFriction`, checking n positive entries each."""
+    t = as_vector(tau_max, n, "tau_max")
+    b = as_vector(beta, n, "beta")
+    if np.any(t < 0) or np.any(b <= 0):
+        raise InputError("friction needs tau_max >= 0 N·m and beta > 0 s/rad for every joint")
+    return JointFriction(tau_max=t, beta=b)

@@ -87,8 +87,9 @@ def cmd_info(args: argparse.Namespace) -> int:
         print(f"{name:<10}{np.degrees(robot.q_min[k]):>9.1f}{np.degrees(robot.q_max[k]):>9.1f}"
               f"{np.degrees(robot.dq_max[k]):>11.1f}{robot.tau_limit[k]:>13.1f}"
               f"{robot.friction.tau_max[k]:>14.2f}{robot.friction.beta[k]:>12.1f}{mass:>9.3f}")
-    total = sum(robot.model.inertias[j].mass for j in range(robot.model.njoints))
-    print(f"moving mass {total:.3f} kg")
+    moving = sum(robot.model.inertias[j].mass for j in range(1, robot.model.njoints))
+    base = robot.model.inertias[0].mass
+    print(f"moving mass {moving:.3f} kg (+ {base:.3f} kg fixed base)")
     tool = robot.model.frames[robot.tool_frame_id]
     parent = robot.model.frames[tool.parentFrame].name
     pose = robot.tool_pose(q)

@@ -257,11 +257,18 @@ def write_csv(traj: Trajectory, path: str | os.PathLike, digits: int = 17) -> Pa
             writer.writerow(COLUMNS)
             for row in np.column_stack([t, p, q]):
                 writer.writerow([fmt.format(v) for v in row])
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the usual mode
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 # --------------------------------------------------------------------------- generators

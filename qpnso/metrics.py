@@ -1,0 +1,240 @@
+"""Run metrics of the papers (METHOD §9), pure NumPy, robot-independent.
+
+Angles in rad unless a name ends in ``_deg``; positions in m (world frame);
+times in s; forces in N.  Every function checks its input and raises
+:class:`~qpnso.errors.InputError` naming the bad argument.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from qpnso.errors import InputError
+
+
+def _array(x, name: str, ndim: int, width: int | None = None, min_len: int = 1,
+           allow_inf: bool = False) -> np.ndarray:
+    try:
+        a = np.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} is not numeric") from None
+    if a.ndim != ndim or (width is not None and a.shape[1] != width):
+        want = "(N,)" if ndim == 1 else f"(N, {width if width is not None else 'k'})"
+        raise InputError(f"{name} must have shape {want}, got {a.shape}")
+    if len(a) < min_len:
+        raise InputError(f"{name} needs at least {min_len} samples, got {len(a)}")
+    ok = ~np.isnan(a) if allow_inf else np.isfinite(a)
+    if not ok.all():
+        raise InputError(f"{name} contains NaN{'' if allow_inf else ' or inf'} "
+                         f"(first at index {np.argwhere(~ok)[0][0]})")
+    return a
+
+
+def _same_length(**arrays: np.ndarray) -> None:
+    lengths = {k: len(v) for k, v in arrays.items() if np.ndim(v) > 0}
+    if len(set(lengths.values())) > 1:
+        raise InputError(f"arrays have different lengths: {lengths}")
+
+
+def elbow_mobility(ns) -> float:
+    """Elbow mobility Δ = max_t ns − min_t ns [E 12] (rad).
+
+    ``ns`` (N,) is the arm angle per tick (rad); it is unwrapped first
+    (``np.unwrap``) since the arm angle is continuous along a run.
+    """
+    a = np.unwrap(_array(ns, "ns", 1))
+    return float(a.max() - a.min())
+
+
+def constraint_proximity(ns, lo, hi) -> float:
+    """Constraint proximity Δc = min_t min(ns − lo, hi − ns) [E 13] (rad).
+
+    ``ns`` (N,) arm angle per tick, ``lo``/``hi`` (N,) or scalars: the
+    continuity interval bounds per tick (may be ±inf when no joint limit
+    restricts the elbow), in the same branch of angles as ``ns``.  Negative
+    when ``ns`` left the interval.
+    """
+    a = _array(ns, "ns", 1)
+    lo, hi = (_array(np.broadcast_to(np.asarray(b, dtype=float), a.shape) if np.ndim(b) == 0 else b, name, 1,
+                     allow_inf=True) for b, name in ((lo, "lo"), (hi, "hi")))
+    _same_length(ns=a, lo=lo, hi=hi)
+    return float(np.min(np.minimum(a - lo, hi - a)))
+
+
+def path_length(p) -> float:
+    """Length (m) of the polyline through the positions ``p`` (N, 3)."""
+    a = _array(p, "p", 2, 3)
+    return float(np.sum(np.linalg.norm(np.diff(a, axis=0), axis=1)))
+
+
+def uniform_period(t, rtol: float = 1e-6) -> float:
+    """The sample period (s) of ``t`` (N,), which must be uniform within ``rtol``."""
+    a = _array(t, "t", 1, min_len=2)
+    d = np.diff(a)
+    dt = (a[-1] - a[0]) / (len(a) - 1)
+    if not dt > 0 or np.max(np.abs(d - dt)) > rtol * dt:
+        raise InputError(f"t must be uniformly sampled and increasing (period {dt:.6g} s; "
+                         f"deviation {np.max(np.abs(d - dt)):.3g} s); resample first")
+    return float(dt)
+
+
+def smoothness(t, p) -> float:
+    """Root-mean-square integral jerk S = sqrt(T⁵/L² · Σ_i ‖d³p/dt³‖²_i dt) [E 14] (dimensionless).
+
+    ``t`` (N,) s must be UNIFORM (raises InputError otherwise; resample first);
+    ``p`` (N, 3) m.  Jerk is the third forward difference divided by dt³ (N−3
+    values); ``T = t_end − t_0``; ``L`` = :func:`path_length`.
+    """
+    dt = uniform_period(t)
+    a = _array(p, "p", 2, 3, min_len=4)
+    _same_length(t=np.asarray(t), p=a)
+    length = path_length(a)
+    if not length > 0:
+        raise InputError("smoothness is undefined for a path of zero length")
+    jerk = np.diff(a, n=3, axis=0) / dt**3
+    duration = float(t[-1] - t[0])
+    return float(np.sqrt(duration**5 / length**2 * np.sum(jerk**2) * dt))
+
+
+def rotation_angles(r_ref, r) -> np.ndarray:
+    """Angles (rad, in [0, π]) of ``R_ref R^T`` for stacks of rotations (N, 3, 3)."""
+    a = _array(r_ref, "R_ref", 3)
+    b = _array(r, "R", 3)
+    _same_length(R_ref=a, R=b)
+    e = np.einsum("nij,nkj->nik", a, b)
+    sin_axis = 0.5 * np.stack([e[:, 2, 1] - e[:, 1, 2], e[:, 0, 2] - e[:, 2, 0], e[:, 1, 0] - e[:, 0, 1]], axis=1)
+    cos = 0.5 * (np.trace(e, axis1=1, axis2=2) - 1.0)
+    return np.arctan2(np.linalg.norm(sin_axis, axis=1), cos)
+
+
+def tracking_error(p_ref, p, r_ref=None, r=None) -> dict[str, float]:
+    """Tool tracking error: position error norms (m) and, with rotations (N, 3, 3),
+    orientation error angles (rad) of ``R_ref Rᵀ``; mean and max of each.
+
+    Keys: ``position_error_mean_m``, ``position_error_max_m`` and, when given,
+    ``rotation_error_mean_rad``, ``rotation_error_max_rad``.
+    """
+    a = _array(p_ref, "p_ref", 2, 3)
+    b = _array(p, "p", 2, 3)
+    _same_length(p_ref=a, p=b)
+    e = np.linalg.norm(a - b, axis=1)
+    out = {"position_error_mean_m": float(e.mean()), "position_error_max_m": float(e.max())}
+    if (r_ref is None) != (r is None):
+        raise InputError("give both r_ref and r, or neither")
+    if r_ref is not None:
+        ang = rotation_angles(r_ref, r)
+        _same_length(p=b, R=ang)
+        out.update(rotation_error_mean_rad=float(ang.mean()), rotation_error_max_rad=float(ang.max()))
+    return out
+
+
+def user_work_per_metre(force, velocity, t, p) -> float:
+    """Absolute work the hand puts into the tool per metre of path, ∫|F·v| dt / L ([M 24], N = J/m).
+
+    ``force`` (N, 3) N with ``velocity`` (N, 3) m/s, or a wrench (N, 6) [f; τ]
+    with a twist (N, 6) [v; ω] (world frame; then the power includes τ·ω);
+    ``t`` (N,) s (trapezoidal rule, any spacing); ``p`` (N, 3) m gives L.
+    This is the per-trial quantity W/L of [M 24]; :func:`relative_work` applies
+    the paper's normalisation across controllers.
+    """
+    f = _array(force, "force", 2, min_len=2)
+    v = _array(velocity, "velocity", 2, min_len=2)
+    if f.shape[1] not in (3, 6) or f.shape != v.shape:
+        raise InputError(f"force and velocity must both be (N, 3) or (N, 6), got {f.shape} and {v.shape}")
+    ts = _array(t, "t", 1, min_len=2)
+    if np.any(np.diff(ts) <= 0):
+        raise InputError("t must be strictly increasing")
+    _same_length(force=f, velocity=v, t=ts, p=np.asarray(p))
+    length = path_length(p)
+    if not length > 0:
+        raise InputError("work per metre is undefined for a path of zero length")
+    power = np.abs(np.einsum("ij,ij->i", f, v))
+    return float(np.sum(0.5 * (power[1:] + power[:-1]) * np.diff(ts)) / length)
+
+
+def relative_work(work_per_metre: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """[M 24] normalisation for one subject: each controller's trials (W/L per
+    trial) divided by the largest per-controller mean W/L."""
+    arrays = {k: _array(np.atleast_1d(v), f"work_per_metre[{k!r}]", 1) for k, v in work_per_metre.items()}
+    if not arrays:
+        raise InputError("relative_work needs at least one controller")
+    top = max(float(v.mean()) for v in arrays.values())
+    if not top > 0:
+        raise InputError("the largest mean work per metre is not positive")
+    return {k: v / top for k, v in arrays.items()}
+
+
+def timing_summary(seconds) -> dict[str, float]:
+    """Median, 95th, 99th percentile and max of durations given in s, in µs.
+
+    Keys ``median_us``, ``p95_us``, ``p99_us``, ``max_us`` (NumPy's linear
+    percentile interpolation).
+    """
+    a = _array(np.ravel(seconds), "seconds", 1) * 1e6
+    p50, p95, p99 = np.percentile(a, [50, 95, 99])
+    return {"median_us": float(p50), "p95_us": float(p95), "p99_us": float(p99), "max_us": float(a.max())}
+
+
+def summarize_run(arrays: Mapping[str, np.ndarray],
+                  status_flags: Mapping[str, int] | None = None) -> dict[str, float]:
+    """Flat dict of the run metrics from per-tick arrays (e.g. ``RunResult.arrays``).
+
+    Uses whichever of these keys are present (names of ``qpnso.solve.RESULT_KEYS``
+    and of the simulation log): ``t`` (required, s); ``ns``; ``interval_lo``,
+    ``interval_hi``; ``rom_lo``, ``rom_hi`` (rad); ``tool_position``,
+    ``ref_position`` (N, 3) m; ``tool_position_error`` (m) and
+    ``tool_rotation_error`` (rad) per tick; ``status`` (int flags per tick);
+    ``tick_time``, ``solve_time`` (s); ``hand_wrench`` and ``tool_twist`` (N, 6).
+
+    Keys returned (when their inputs exist): ``duration_s``, ``ticks``,
+    ``elbow_mobility_deg`` [E 12], ``constraint_proximity_deg`` [E 13] (to the
+    continuity interval), ``rom_proximity_deg`` (same formula with the ROM;
+    negative = outside), ``smoothness`` [E 14] (tool path), ``path_length_m``,
+    ``tool_position_error_mean_m``/``_max_m``,
+    ``tool_rotation_error_mean_deg``/``_max_deg``, ``status_not_ok_ticks``,
+    ``status_not_ok_fraction``, ``status_<NAME>_ticks`` for each entry of
+    ``status_flags`` (name → bit value, e.g. ``{f.name: f.value for f in Status}``),
+    ``tick_time_{median,p95,p99,max}_us``, ``solve_time_{...}_us``,
+    ``user_work_per_metre_N`` [M 24].
+    """
+    if "t" not in arrays:
+        raise InputError("summarize_run needs the per-tick times 't'")
+    t = _array(arrays["t"], "t", 1)
+    has = lambda *keys: all(k in arrays and arrays[k] is not None and len(arrays[k]) for k in keys)  # noqa: E731
+    out: dict[str, float] = {"duration_s": float(t[-1] - t[0]), "ticks": float(len(t))}
+    if has("ns"):
+        out["elbow_mobility_deg"] = float(np.degrees(elbow_mobility(arrays["ns"])))
+        for key, lo, hi in (("constraint_proximity_deg", "interval_lo", "interval_hi"),
+                            ("rom_proximity_deg", "rom_lo", "rom_hi")):
+            if has(lo, hi):
+                out[key] = float(np.degrees(constraint_proximity(arrays["ns"], arrays[lo], arrays[hi])))
+    if has("tool_position"):
+        out["path_length_m"] = path_length(arrays["tool_position"])
+        if len(t) >= 4 and out["path_length_m"] > 0:
+            out["smoothness"] = smoothness(t, arrays["tool_position"])
+    if has("tool_position_error"):
+        e = _array(arrays["tool_position_error"], "tool_position_error", 1)
+        out.update(tool_position_error_mean_m=float(e.mean()), tool_position_error_max_m=float(e.max()))
+    elif has("tool_position", "ref_position"):
+        err = tracking_error(arrays["ref_position"], arrays["tool_position"])
+        out.update(tool_position_error_mean_m=err["position_error_mean_m"],
+                   tool_position_error_max_m=err["position_error_max_m"])
+    if has("tool_rotation_error"):
+        e = np.degrees(_array(arrays["tool_rotation_error"], "tool_rotation_error", 1))
+        out.update(tool_rotation_error_mean_deg=float(e.mean()), tool_rotation_error_max_deg=float(e.max()))
+    if has("status"):
+        s = np.asarray(arrays["status"]).astype(np.int64)
+        out["status_not_ok_ticks"] = float(np.count_nonzero(s))
+        out["status_not_ok_fraction"] = float(np.count_nonzero(s) / len(s))
+        for name, bit in (status_flags or {}).items():
+            if int(bit):
+                out[f"status_{name}_ticks"] = float(np.count_nonzero(s & int(bit)))
+    for key in ("tick_time", "solve_time"):
+        if has(key):
+            out.update({f"{key}_{k}": v for k, v in timing_summary(arrays[key]).items()})
+    if has("hand_wrench", "tool_twist", "tool_position") and out.get("path_length_m", 0) > 0:
+        out["user_work_per_metre_N"] = user_work_per_metre(arrays["hand_wrench"], arrays["tool_twist"], t,
+                                                           arrays["tool_position"])
+    return out

@@ -109,6 +109,23 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------- bench
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Time the cost or the control tick; print a Markdown table of medians and p99."""
+    from qpnso import benchmark
+
+    robot = load_cli_robot(args)
+    if args.what == "cost":
+        rows = benchmark.bench_cost(robot, n=args.n)
+        title = f"cost.value + cost.gradient, {robot.name}, mass + friction force"
+    else:
+        strategies = tuple(args.strategies.split(",")) if args.strategies else None
+        rows = benchmark.bench_tick(robot, n=args.n, strategies=strategies)
+        title = f"Controller.step, {robot.name}, dt = 1 ms"
+    print(benchmark.table(rows, title))
+    return 0
+
+
 # ------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="qpnso", description=__doc__.split("\n")[0])
@@ -118,6 +135,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_robot_arguments(p, positional=True)
     add_q_arguments(p)
     p.set_defaults(handler=cmd_info)
+
+    p = sub.add_parser("bench", help="time the cost evaluation or the control tick (median, p99)")
+    p.add_argument("what", choices=["cost", "tick"])
+    add_robot_arguments(p)
+    p.add_argument("-n", type=int, default=3000, help="timed calls per row (default 3000)")
+    p.add_argument("--strategies", default=None, help="comma-separated strategies for 'tick' (default all)")
+    p.set_defaults(handler=cmd_bench)
     return parser
 
 

@@ -140,6 +140,8 @@ class CostModel:
             self.sym.function("cost_value_gradient", {"value": total, "gradient": ca.gradient(total, self.sym.q)}),
             mode,
         )
+        self._last_q: np.ndarray | None = None
+        self._last: tuple[float, np.ndarray] = (0.0, np.zeros(robot.nq))
         self._hessian_fn: ca.Function | None = None
         self._hvp_fn: ca.Function | None = None
 
@@ -188,15 +190,19 @@ class CostModel:
 
     def value(self, q: object) -> float:
         """Weighted total cost c(q) [M 18] (dimensionless with normalisation)."""
-        return self._value_grad_fn(self._q(q))[0]
+        return self.value_and_gradient(q)[0]
 
     def gradient(self, q: object) -> np.ndarray:
         """Exact gradient ∇c(q) (per rad), from CasADi's automatic differentiation."""
-        return self._value_grad_fn(self._q(q))[1]
+        return self.value_and_gradient(q)[1].copy()
 
     def value_and_gradient(self, q: object) -> tuple[float, np.ndarray]:
-        """Both in one evaluation (what a control tick calls)."""
-        return self._value_grad_fn(self._q(q))
+        """Both from one evaluation; the last one is reused for the same ``q``."""
+        qv = self._q(q)
+        if self._last_q is None or not np.array_equal(qv, self._last_q):
+            self._last = self._value_grad_fn(qv)
+            self._last_q = qv.copy()
+        return self._last
 
     def hessian(self, q: object) -> np.ndarray:
         """Exact Hessian ∇²c(q) (nq×nq); its function is built on first use."""

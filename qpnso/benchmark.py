@@ -1,0 +1,137 @@
+"""Timing benchmarks: measured, never assumed.  Medians and p99 in microseconds.
+
+``qpnso bench cost`` times ``cost.value`` + ``cost.gradient``;
+``qpnso bench tick`` times ``Controller.step`` for every strategy (and Pink's
+``solve_ik`` for reference when ``pin-pink`` is installed).  Compiled CasADi
+code is awaited before timing, so the figures are the steady state of a
+control loop.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from qpnso.costs import CostModel, CostWeights
+from qpnso.robot import Robot
+
+
+@dataclass
+class Timing:
+    """Per-call times of one benchmark row, in seconds."""
+
+    name: str
+    seconds: np.ndarray
+    note: str = ""
+
+    @property
+    def median_us(self) -> float:
+        return float(np.median(self.seconds) * 1e6)
+
+    @property
+    def p99_us(self) -> float:
+        return float(np.percentile(self.seconds, 99) * 1e6)
+
+    def row(self) -> str:
+        return f"| {self.name} | {self.median_us:.1f} | {self.p99_us:.1f} | {len(self.seconds)} | {self.note} |"
+
+
+def time_calls(fn: Callable[[int], object], n: int, warmup: int = 50) -> np.ndarray:
+    """Seconds of each of ``n`` calls ``fn(i)`` after ``warmup`` untimed ones."""
+    for i in range(warmup):
+        fn(i)
+    out = np.empty(n)
+    for i in range(n):
+        t0 = time.perf_counter()
+        fn(i)
+        out[i] = time.perf_counter() - t0
+    return out
+
+
+def table(timings: list[Timing], title: str) -> str:
+    lines = [f"### {title}", "", "| what | median µs | p99 µs | calls | note |", "|---|---|---|---|---|"]
+    return "\n".join(lines + [t.row() for t in timings])
+
+
+def bench_cost(robot: Robot, n: int = 5000, seed: int = 0) -> list[Timing]:
+    """``value`` + ``gradient`` (mass + friction force weights) at random configurations."""
+    rng = np.random.default_rng(seed)
+    qs = [robot.random_q(rng, margin=0.1) for _ in range(64)]
+    out = []
+    for mode in ("background", "off"):
+        cost = CostModel(robot, CostWeights(mass=1, friction_force=1), compile=mode)
+        compiled = cost.wait_compiled()
+        note = "compiled C" if compiled else "CasADi VM"
+
+        def call(i: int, cost=cost) -> None:
+            q = qs[i % len(qs)]
+            cost.value(q)
+            cost.gradient(q)
+
+        out.append(Timing(f"value + gradient ({note})", time_calls(call, n), note="two calls"))
+
+        def both(i: int, cost=cost) -> None:
+            cost.value_and_gradient(qs[i % len(qs)])
+
+        out.append(Timing(f"value_and_gradient ({note})", time_calls(both, n), note="one call"))
+    return out
+
+
+def held_tool_run(ctrl, q0: np.ndarray, n: int) -> np.ndarray:
+    """Seconds per ``step`` over ``n`` ticks with the tool held, integrating ``q ← q + dt·dq``."""
+    ctrl.reset(q0)
+    q = q0.copy()
+    times = np.empty(n)
+    for i in range(n):
+        t0 = time.perf_counter()
+        cmd = ctrl.step(q)
+        times[i] = time.perf_counter() - t0
+        q = q + ctrl.config.dt * cmd.dq
+    return times
+
+
+def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None = None) -> list[Timing]:
+    """``Controller.step`` per strategy, tool held, from the sample configuration."""
+    from qpnso.cli import sample_configuration
+    from qpnso.controller import STRATEGIES, Controller, ControllerConfig
+
+    strategies = strategies or STRATEGIES
+    q0 = sample_configuration(robot)
+    out = []
+    for name in strategies:
+        ctrl = Controller(robot, ControllerConfig(strategy=name))
+        ctrl.cost.wait_compiled()
+        ctrl.evaluate.wait_compiled()
+        held_tool_run(ctrl, q0, 200)  # warm-up
+        out.append(Timing(f"step, strategy {name}", held_tool_run(ctrl, q0, n), note="tool held"))
+    pink = bench_pink(robot, q0, n)
+    if pink is not None:
+        out.append(pink)
+    return out
+
+
+def bench_pink(robot: Robot, q0: np.ndarray, n: int) -> Timing | None:
+    """Pink's ``solve_ik`` with a FrameTask and a PostureTask (same robot, ProxQP), if installed."""
+    try:
+        import pink
+        from pink.tasks import FrameTask, PostureTask
+    except ImportError:
+        return None
+    import pinocchio as pin
+
+    config = pink.Configuration(robot.model, robot.model.createData(), q0)
+    tool = robot.model.frames[robot.tool_frame_id].name
+    frame_task = FrameTask(tool, position_cost=1.0, orientation_cost=1.0)
+    posture = PostureTask(cost=1e-3)
+    frame_task.set_target(config.get_transform_frame_to_world(tool))
+    posture.set_target(q0)
+    tasks = [frame_task, posture]
+
+    def call(i: int) -> None:
+        v = pink.solve_ik(config, tasks, 1e-3, solver="proxqp")
+        config.integrate_inplace(v, 1e-3)
+
+    return Timing("Pink solve_ik (FrameTask + PostureTask)", time_calls(call, n), note=f"pink, proxqp, pin {pin.__version__}")

@@ -1,0 +1,164 @@
+"""Arm angle, S-R-S geometry and closed-form IK, against Pinocchio and finite differences."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from qpnso import elbow as E
+from qpnso.errors import InputError, ModelError, SingularityError, UnreachableError
+from qpnso.robot import Robot, friction_from_lists, load_robot
+from qpnso.symbolic import SymbolicModel
+
+SRS = ["lwr4p", "iiwa14"]
+
+
+@pytest.fixture(scope="module", params=SRS)
+def robot(request) -> Robot:
+    return load_robot(request.param)
+
+
+def _regular_qs(robot: Robot, rng: np.random.Generator, n: int) -> list[np.ndarray]:
+    qs = (robot.random_q(rng, 0.05) for _ in range(4 * n))
+    return [q for q in qs if E.arm_angle_status(robot, q).ok][:n]
+
+
+def _reference_arm_angle(robot: Robot, q: np.ndarray) -> float:
+    """[E 2]–[E 4] literally, with explicitly normalised u_sin, u_cos, from Pinocchio placements."""
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    pts = E.elbow_points(robot)
+    ps = data.oMi[pts.shoulder_joint].act(np.array(pts.shoulder_offset))
+    pe = data.oMi[pts.elbow_joint].act(np.array(pts.elbow_offset))
+    pw = data.oMi[pts.wrist_joint].act(np.array(pts.wrist_offset))
+    p_sw, p_se = pw - ps, pe - ps
+    u_sin = np.cross([0, 0, 1.0], p_sw)
+    u_sin /= np.linalg.norm(u_sin)
+    u_cos = np.cross(p_sw, u_sin)
+    u_cos /= np.linalg.norm(u_cos)
+    return float(np.arctan2(p_se @ u_sin, p_se @ u_cos))
+
+
+def test_geometry_read_from_model(robot: Robot) -> None:
+    g = E.srs_geometry(robot)
+    expected = {"lwr4p": (0.40, 0.39), "iiwa14": (0.42, 0.40)}[robot.name]  # MODELS-AND-ELBOW.md
+    assert (g.upper_arm_m, g.forearm_m) == pytest.approx(expected, abs=1e-12)
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, np.zeros(7))
+    pts = g.points
+    for j, off in ((pts.shoulder_joint, pts.shoulder_offset), (pts.wrist_joint, pts.wrist_offset)):
+        assert np.allclose(data.oMi[j].act(np.array(off))[:2], 0.0)  # on the vertical line at q = 0
+
+
+def test_non_srs_models_are_refused(robot: Robot) -> None:
+    model = robot.model.copy()
+    model.jointPlacements[4] = pin.SE3(np.eye(3), model.jointPlacements[4].translation + [0.01, 0, 0])
+    bent = Robot("bent", model, robot.tool_frame_id, friction_from_lists([1.5] * 7, [20.0] * 7, 7))
+    assert not E.is_srs(bent)
+    with pytest.raises(ModelError, match="not S-R-S"):
+        E.srs_geometry(bent)
+    q = np.full(7, 0.4)
+    assert E.arm_angle_status(bent, q).ok  # the arm angle itself stays defined
+
+
+def test_arm_angle_matches_literal_formula(robot: Robot, rng) -> None:
+    for q in _regular_qs(robot, rng, 50):
+        assert E.arm_angle(robot, q) == pytest.approx(_reference_arm_angle(robot, q), abs=1e-12)
+
+
+def test_zero_is_elbow_up(robot: Robot, rng) -> None:
+    """cos ns > 0 exactly when the elbow is above the shoulder–wrist line."""
+    data = robot.model.createData()
+    pts = E.elbow_points(robot)
+    for q in _regular_qs(robot, rng, 50):
+        pin.forwardKinematics(robot.model, data, q)
+        ps, pe, pw = (data.oMi[j].translation for j in (pts.shoulder_joint, pts.elbow_joint, pts.wrist_joint))
+        t = (pe - ps) @ (pw - ps) / ((pw - ps) @ (pw - ps))
+        height = (pe - (ps + t * (pw - ps)))[2]
+        ns = E.arm_angle(robot, q)
+        if abs(height) > 1e-3 and abs(np.cos(ns)) > 1e-3:
+            assert np.sign(np.cos(ns)) == np.sign(height)
+
+
+def test_gradient_matches_central_differences(robot: Robot, rng) -> None:
+    h = 1e-6
+    for q in _regular_qs(robot, rng, 10):
+        grad = E.arm_angle_gradient(robot, q)
+        fd = np.array([
+            np.angle(np.exp(1j * (E.arm_angle(robot, q + h * e) - E.arm_angle(robot, q - h * e)))) / (2 * h)
+            for e in np.eye(7)
+        ])
+        assert np.allclose(grad, fd, atol=1e-6, rtol=1e-6)
+
+
+def test_expression_and_measures(robot: Robot, rng) -> None:
+    sym = SymbolicModel(robot.model)
+    ns, measures = E.arm_angle_expression(sym, E.elbow_points(robot))
+    fun = sym.function("ns", {"ns": ns, "m": measures})
+    for q in _regular_qs(robot, rng, 10):
+        out = fun(q=q)
+        state = E.arm_angle_status(robot, q)
+        assert float(out["ns"]) == pytest.approx(state.value, abs=1e-12)
+        assert np.allclose(np.asarray(out["m"]).ravel(), [state.wrist_sin, state.elbow_offset_m], atol=1e-12)
+
+
+def test_singular_configurations_are_reported(robot: Robot) -> None:
+    straight_up = np.zeros(7)
+    assert E.arm_angle_status(robot, straight_up).status == "wrist_vertical"
+    bent_shoulder_straight_elbow = np.array([0.0, 0.6, 0.0, 0.0, 0.0, 0.3, 0.0])
+    state = E.arm_angle_status(robot, bent_shoulder_straight_elbow)
+    assert state.status == "elbow_straight" and state.elbow_offset_m < 1e-12
+    for q in (straight_up, bent_shoulder_straight_elbow):
+        with pytest.raises(SingularityError, match="arm angle undefined"):
+            E.arm_angle(robot, q)
+        with pytest.raises(SingularityError):
+            E.arm_angle_gradient(robot, q)
+    with pytest.raises(SingularityError, match="joint 4"):
+        E.branch(robot, bent_shoulder_straight_elbow)
+
+
+def test_ik_round_trips(robot: Robot, rng) -> None:
+    data = robot.model.createData()
+    for q in _regular_qs(robot, rng, 100):
+        pose, ns, b = robot.tool_pose(q), E.arm_angle(robot, q), E.branch(robot, q)
+        q_ik = E.ik(robot, pose, ns, b)
+        assert np.abs(q_ik - q).max() < 1e-9
+        for q_other in E.ik(robot, pose, rng.uniform(-np.pi, np.pi, 5), b):
+            pin.framesForwardKinematics(robot.model, data, q_other)
+            assert np.abs(data.oMf[robot.tool_frame_id].homogeneous - pose.homogeneous).max() < 1e-9
+            assert E.branch(robot, q_other) == b
+        ns_new = rng.uniform(-np.pi, np.pi)
+        q_new = E.ik(robot, pose, ns_new, b)
+        if E.arm_angle_status(robot, q_new).ok:
+            assert abs(np.angle(np.exp(1j * (E.arm_angle(robot, q_new) - ns_new)))) < 1e-9
+
+
+def test_all_eight_branches(robot: Robot, rng) -> None:
+    q = _regular_qs(robot, rng, 1)[0]
+    pose = robot.tool_pose(q)
+    for signs in itertools.product((1, -1), repeat=3):
+        q_b = E.ik(robot, pose, 0.7, signs)
+        assert np.abs(robot.tool_pose(q_b).homogeneous - pose.homogeneous).max() < 1e-9
+        assert E.branch(robot, q_b).as_tuple() == signs
+
+
+def test_bad_input(robot: Robot) -> None:
+    q = np.full(7, 0.5)
+    pose = robot.tool_pose(q)
+    far = pin.SE3(pose.rotation, pose.translation + np.array([2.0, 0, 0]))
+    with pytest.raises(UnreachableError, match="out of reach.*by"):
+        E.ik(robot, far, 0.0, (1, 1, 1))
+    with pytest.raises(InputError, match="NaN"):
+        E.ik(robot, pose, float("nan"), (1, 1, 1))
+    bad = pose.homogeneous.copy()
+    bad[0, 3] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        E.ik(robot, bad, 0.0, (1, 1, 1))
+    for wrong in [(1, 0, 1), (1, 1), "abc", 3, (1, 2, 1)]:
+        with pytest.raises(InputError, match="branch"):
+            E.ik(robot, pose, 0.0, wrong)
+    with pytest.raises(InputError, match="NaN"):
+        E.arm_angle(robot, np.full(7, np.nan))

@@ -1,0 +1,95 @@
+"""Figures (matplotlib, optional: ``pip install 'qpnso[plot]'``)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from qpnso.elbow import arm_angle, branch, self_motion
+from qpnso.errors import InputError
+from qpnso.intervals import continuity_interval, feasible_intervals
+from qpnso.robot import Robot
+from qpnso.rom import ElbowConfig, clip_rom
+
+
+def _pyplot():  # type: ignore[no-untyped-def]
+    try:
+        import matplotlib
+    except ImportError:
+        raise ImportError("plotting needs matplotlib: pip install 'qpnso[plot]'") from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _shade(ax, arcs, color: str, alpha: float) -> None:  # type: ignore[no-untyped-def]
+    """Shade arcs (rad, possibly crossing ±π) on an axis in degrees over [-180, 180]."""
+    for lo, hi in arcs:
+        for shift in (-2 * math.pi, 0.0, 2 * math.pi):
+            a, b = max(lo + shift, -math.pi), min(hi + shift, math.pi)
+            if a < b:
+                ax.axvspan(math.degrees(a), math.degrees(b), color=color, alpha=alpha, lw=0)
+
+
+def plot_intervals(
+    robot: Robot,
+    q: object,
+    rom: ElbowConfig | None = None,
+    out: str | Path = "intervals.png",
+    samples: int = 1441,
+) -> Path:
+    """Every joint versus the arm angle for the tool pose of ``q`` (S-R-S closed form).
+
+    One panel per joint (deg versus deg): the joint curve, its limits, the arcs
+    where that joint is within its limits (light green), Ψ (all joints, green
+    band in every panel), the continuity interval (blue outline), the current
+    arm angle (black line) and, if ``rom`` is given, ROM_t (orange band;
+    ``ns0`` is the current arm angle).  Writes a PNG and returns its path.
+    """
+    plt = _pyplot()
+    qv = robot.check_q(q)
+    pose, b, ns = robot.tool_pose(qv), branch(robot, qv), arm_angle(robot, qv)
+    if samples < 10:
+        raise InputError(f"samples must be >= 10, got {samples}")
+    grid = np.linspace(-math.pi, math.pi, samples)
+    joints = self_motion(robot, pose, b).joints(grid)
+    psi, per_joint = feasible_intervals(robot, pose, b, per_joint=True)
+    interval = continuity_interval(robot, qv)
+    fig, axes = plt.subplots(robot.nq, 1, figsize=(8, 1.6 * robot.nq + 1), sharex=True)
+    for k, ax in enumerate(axes):
+        curve = np.degrees(joints[:, k])
+        curve[1:][np.abs(np.diff(curve)) > 90] = np.nan  # do not draw the ±180° wrap as a line
+        _shade(ax, per_joint[k], "tab:green", 0.12)
+        _shade(ax, psi, "tab:green", 0.25)
+        if rom is not None:
+            rt = clip_rom(ns, rom.half_width_rad, interval, rom.safety_margin_rad)
+            if not rt.empty:
+                _shade(ax, [(rt.lo, rt.hi)], "tab:orange", 0.35)
+        ax.plot(np.degrees(grid), curve, color="tab:blue", lw=1.2)
+        for lim in (robot.q_min[k], robot.q_max[k]):
+            ax.axhline(math.degrees(lim), color="tab:red", ls="--", lw=0.8)
+        ax.axvline(math.degrees(ns), color="black", lw=1.0)
+        ax.plot(math.degrees(ns), math.degrees(qv[k]), "ko", ms=4)
+        if not interval.full_circle:
+            for end in (interval.lo, interval.hi):
+                ax.axvline(math.degrees((end + math.pi) % (2 * math.pi) - math.pi), color="tab:blue", ls=":", lw=1.0)
+        ax.set_ylabel(f"q{k + 1} (deg)")
+        ax.set_ylim(-185, 185)
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("arm angle ns (deg)")
+    axes[-1].set_xlim(-180, 180)
+    width = "full circle" if interval.full_circle else f"[{math.degrees(interval.lo):.1f}, {math.degrees(interval.hi):.1f}] deg"
+    axes[0].set_title(
+        f"{robot.name}: joints vs arm angle, branch {b.as_tuple()}, ns = {math.degrees(ns):.1f} deg, "
+        f"interval {width}\n(green: Ψ, light green: joint within limits, orange: ROM_t, red: limits)",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,164 @@
+"""Continuity intervals against brute force (dense circle sampling), the numerical
+self-motion follower against the closed form, and the Panda (numerical only)."""
+
+from __future__ import annotations
+
+import glob
+import math
+import site
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from qpnso import elbow as E
+from qpnso import intervals as I
+from qpnso.errors import JointLimitError, RobotNotFoundError, SingularityError
+from qpnso.robot import Robot, friction_from_lists, load_robot
+
+TWO_PI = 2 * math.pi
+GRID = np.linspace(-math.pi, math.pi, 721)[:-1]
+STEP = GRID[1] - GRID[0]
+
+
+@pytest.fixture(scope="module", params=["lwr4p", "iiwa14"])
+def robot(request) -> Robot:
+    return load_robot(request.param)
+
+
+def _regular_qs(robot: Robot, rng: np.random.Generator, n: int, margin: float = 0.0) -> list[np.ndarray]:
+    qs = (robot.random_q(rng, margin) for _ in range(2 * n))
+    return [q for q in qs if E.arm_angle_status(robot, q).ok][:n]
+
+
+def _inside(arcs: list[tuple[float, float]], x: np.ndarray) -> np.ndarray:
+    out = np.zeros(x.shape, bool)
+    for lo, hi in arcs:
+        out |= (x - lo) % TWO_PI <= hi - lo
+    return out
+
+
+def _near_end(arcs: list[tuple[float, float]], x: np.ndarray, tol: float) -> np.ndarray:
+    out = np.zeros(x.shape, bool)
+    for end in [e for arc in arcs for e in arc]:
+        out |= np.abs(np.angle(np.exp(1j * (x - end)))) < tol
+    return out
+
+
+def _end_is_exact(robot: Robot, pose: pin.SE3, b: E.Branch, ns: float, cause: I.Cause) -> None:
+    q = E.ik(robot, pose, ns, b)
+    if cause.kind == "limit":
+        limit = robot.q_max[cause.joint] if cause.bound == "max" else robot.q_min[cause.joint]
+        assert abs(q[cause.joint] - limit) < 1e-9
+        assert np.all(q >= robot.q_min - 1e-9) and np.all(q <= robot.q_max + 1e-9)
+    else:
+        assert abs(q[cause.joint]) < 1e-4  # joint 2 or 6 through 0
+
+
+def test_brute_force_1000_poses(robot: Robot) -> None:
+    """Ψ equals the feasible samples of the circle, and the continuity interval is exact."""
+    rng = np.random.default_rng(2024)
+    data = robot.model.createData()
+    n_checked = n_bounded = 0
+    for q in _regular_qs(robot, rng, 1000):
+        pose, b = robot.tool_pose(q), E.branch(robot, q)
+        psi, per_joint = I.feasible_intervals(robot, pose, b, per_joint=True)
+        joints = E.ik(robot, pose, GRID, b)
+        feasible = np.all((joints >= robot.q_min) & (joints <= robot.q_max), axis=1)
+        inside = _inside(psi, GRID)
+        away = ~_near_end(psi, GRID, STEP)
+        assert np.array_equal(inside[away], feasible[away])
+        for k in (0, 3, 5):  # per-joint sets (checked on a few joints to stay fast)
+            ok_k = (joints[:, k] >= robot.q_min[k]) & (joints[:, k] <= robot.q_max[k])
+            far_k = ~_near_end(per_joint[k], GRID, STEP)
+            assert np.array_equal(_inside(per_joint[k], GRID)[far_k], ok_k[far_k])
+        for i in rng.choice(GRID.size, 3, replace=False):  # the sampled joints hold the pose (Pinocchio)
+            pin.framesForwardKinematics(robot.model, data, joints[i])
+            assert np.abs(data.oMf[robot.tool_frame_id].homogeneous - pose.homogeneous).max() < 1e-9
+        interval = I.continuity_interval(robot, q)
+        ns = E.arm_angle(robot, q)
+        assert interval.lo <= ns <= interval.hi and interval.width <= TWO_PI + 1e-12
+        if interval.full_circle:
+            assert psi == [(-math.pi, math.pi)]
+        else:
+            n_bounded += 1
+            for end, cause in ((interval.lo, interval.lo_cause), (interval.hi, interval.hi_cause)):
+                _end_is_exact(robot, pose, b, end, cause)
+            arc = [a for a in psi if abs(np.angle(np.exp(1j * (a[0] - interval.lo)))) < 1e-9]
+            assert len(arc) == 1 and arc[0][1] - arc[0][0] == pytest.approx(interval.width, abs=1e-9)
+        n_checked += 1
+    assert n_checked >= 950 and n_bounded > 500
+
+
+def test_arc_convention_across_pi(robot: Robot) -> None:
+    rng = np.random.default_rng(5)
+    for q in _regular_qs(robot, rng, 300):
+        psi = I.feasible_intervals(robot, robot.tool_pose(q), E.branch(robot, q))
+        assert psi == sorted(psi)
+        for lo, hi in psi:
+            assert -math.pi <= lo < math.pi and lo < hi <= lo + TWO_PI
+        if any(hi > math.pi for lo, hi in psi if (lo, hi) != (-math.pi, math.pi)):
+            return
+    pytest.fail("no arc crossing ±π found in 300 poses")
+
+
+def test_numerical_follower_matches_closed_form(robot: Robot) -> None:
+    rng = np.random.default_rng(11)
+    for q in _regular_qs(robot, rng, 4, margin=0.1):
+        exact = I.continuity_interval(robot, q)
+        numeric = I.numerical_interval(robot, q)
+        assert numeric.method == "numerical" and exact.method == "closed_form"
+        assert numeric.full_circle == exact.full_circle
+        if not exact.full_circle:
+            assert numeric.lo == pytest.approx(exact.lo, abs=1e-8)
+            assert numeric.hi == pytest.approx(exact.hi, abs=1e-8)
+            assert (numeric.lo_cause, numeric.hi_cause) == (exact.lo_cause, exact.hi_cause)
+
+
+def test_errors(robot: Robot) -> None:
+    q = np.full(7, 0.5)
+    q[0] = robot.q_max[0] + 0.01
+    with pytest.raises(JointLimitError, match="outside"):
+        I.continuity_interval(robot, q)
+    with pytest.raises(SingularityError):
+        I.continuity_interval(robot, np.zeros(7))  # wrist straight above the shoulder
+    q = np.array([0.3, 0.0, 0.2, 1.0, 0.1, 0.5, 0.0])
+    with pytest.raises(SingularityError, match="joint 2"):
+        I.continuity_interval(robot, q)  # branch undefined
+
+
+# ------------------------------------------------------------------ Panda
+def _panda() -> Robot:
+    try:
+        return load_robot("panda")
+    except RobotNotFoundError:
+        pass
+    pattern = "/cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf"
+    paths = [p for d in site.getsitepackages() for p in glob.glob(d + pattern)]
+    if not paths:
+        pytest.skip("Panda model not available (pip install example-robot-data)")
+    full = pin.buildModelFromUrdf(paths[0])
+    fingers = [full.getJointId(n) for n in full.names if "finger" in n]
+    model = pin.buildReducedModel(full, fingers, pin.neutral(full))
+    return Robot("panda", model, model.getFrameId("panda_link8"), friction_from_lists([1.5] * 7, [20.0] * 7, 7))
+
+
+def test_panda_numerical_interval_ends_are_limit_crossings() -> None:
+    robot = _panda()
+    assert not E.is_srs(robot)
+    rng = np.random.default_rng(3)
+    for q in _regular_qs(robot, rng, 4, margin=0.1):
+        interval = I.continuity_interval(robot, q)
+        assert interval.method == "numerical"
+        pose = robot.tool_pose(q)
+        assert interval.lo <= E.arm_angle(robot, q) <= interval.hi
+        if interval.full_circle:
+            continue
+        for end, cause, q_end in ((interval.lo, interval.lo_cause, interval.lo_q),
+                                  (interval.hi, interval.hi_cause, interval.hi_q)):
+            assert np.abs(robot.tool_pose(q_end).homogeneous - pose.homogeneous).max() < 1e-9
+            assert abs(np.angle(np.exp(1j * (E.arm_angle(robot, q_end) - end)))) < 1e-9
+            if cause.kind == "limit":
+                limit = robot.q_max[cause.joint] if cause.bound == "max" else robot.q_min[cause.joint]
+                assert abs(q_end[cause.joint] - limit) < 1e-9
+                assert np.all(q_end >= robot.q_min - 1e-9) and np.all(q_end <= robot.q_max + 1e-9)

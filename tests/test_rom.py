@@ -1,0 +1,89 @@
+"""ROM [E 5], clipping [E 10]/[E 11], stiffness [E 6], set-point, and the intervals figure."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+
+import numpy as np
+import pytest
+
+from qpnso.errors import ConfigError, InputError
+from qpnso.intervals import Interval
+from qpnso.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
+
+D = math.radians
+
+
+def test_rom_bounds() -> None:
+    assert rom_bounds(0.3, 0.5) == pytest.approx((-0.2, 0.8))
+    with pytest.raises(InputError):
+        rom_bounds(float("nan"), 0.5)
+    with pytest.raises(InputError):
+        rom_bounds(0.0, -0.1)
+
+
+@pytest.mark.parametrize(
+    ("lo", "hi", "expected"),
+    [
+        (-3.0, 3.0, (0.5 - D(50), 0.5 + D(50))),  # interval wide: ROM unchanged
+        (0.0, 3.0, (D(10), 0.5 + D(50))),  # [E 10]: low end clipped to lo_i + d_sg
+        (-3.0, 1.0, (0.5 - D(50), 1.0 - D(10))),  # [E 11]: high end clipped to hi_i − d_sg
+    ],
+)
+def test_clip_rom(lo: float, hi: float, expected: tuple[float, float]) -> None:
+    rt = clip_rom(0.5, D(50), Interval(lo, hi, False), D(10))
+    assert (rt.lo, rt.hi) == pytest.approx(expected) and not rt.empty
+
+
+def test_clip_rom_unwraps_ns0_and_full_circle() -> None:
+    interval = Interval(5.0, 7.0, False)  # unwrapped around an arm angle near 2π
+    rt = clip_rom(6.0 - 2 * math.pi, 0.2, interval, 0.1)
+    assert (rt.lo, rt.hi) == pytest.approx((5.8, 6.2))
+    assert clip_rom(1.0, 0.3, Interval(-2.0, 4.2, True), 0.1) == ClippedRom(pytest.approx(0.7), pytest.approx(1.3))
+
+
+def test_clip_rom_empty_cases() -> None:
+    rt = clip_rom(0.0, 0.2, Interval(1.0, 2.5, False), 0.1)  # ROM entirely below the interval
+    assert rt.empty and rt.lo == rt.hi == pytest.approx(1.1)
+    rt = clip_rom(3.0, 0.2, Interval(1.0, 2.5, False), 0.1)
+    assert rt.empty and rt.lo == rt.hi == pytest.approx(2.4)
+    rt = clip_rom(1.0, 0.2, Interval(0.9, 1.05, False), 0.1)  # narrower than twice the margin
+    assert rt.empty and rt.lo == rt.hi == pytest.approx(0.975)
+
+
+def test_stiffness_double_sigmoid() -> None:
+    cfg = ElbowConfig(half_width_deg=50, stiffness_min=10, stiffness_max=30)
+    ns0 = 0.4
+    x = np.linspace(-2, 2, 101) + ns0
+    k = stiffness(x, ns0, cfg)
+    reference = (30 - 10) / (1 + np.exp(cfg.alpha_per_rad * (cfg.d_rad - np.abs(x - ns0)))) + 10  # [E 6]
+    assert np.allclose(k, reference, rtol=1e-12)
+    assert stiffness(ns0 + cfg.d_rad, ns0, cfg) == pytest.approx(20.0)  # inflection at d
+    assert stiffness(ns0, ns0, cfg) < 10.1 and stiffness(ns0 + D(50), ns0, cfg) > 27.0  # soft inside, stiff at ends
+    assert np.allclose(k, stiffness(2 * ns0 - x, ns0, cfg))  # symmetric
+    assert stiffness(1e6, 0.0, cfg) == pytest.approx(30.0)  # no overflow
+
+
+def test_setpoint_saturates() -> None:
+    rt = ClippedRom(-0.5, 0.7)
+    assert [setpoint(x, rt) for x in (-1.0, 0.1, 2.0)] == [-0.5, 0.1, 0.7]
+    assert setpoint(0.9, (-0.5, 0.7)) == 0.7
+
+
+def test_config_validation_and_units() -> None:
+    cfg = ElbowConfig(half_width_deg=10, safety_margin_deg=10)
+    assert cfg.half_width_rad == pytest.approx(D(10)) and cfg.safety_margin_rad == pytest.approx(D(10))
+    for bad in ({"half_width_deg": -1}, {"stiffness_min": 40.0}, {"alpha": 0.0}, {"safety_margin_deg": float("nan")}):
+        with pytest.raises(ConfigError):
+            ElbowConfig(**bad)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("matplotlib") is None, reason="matplotlib not installed")
+def test_plot_intervals_writes_png(tmp_path) -> None:
+    from qpnso.plots import plot_intervals
+    from qpnso.robot import load_robot
+
+    robot = load_robot("lwr4p")
+    path = plot_intervals(robot, np.radians([20, 60, -30, -80, 40, 70, 10]), rom=ElbowConfig(), out=tmp_path / "iv.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000

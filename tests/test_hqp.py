@@ -1,0 +1,386 @@
+"""Tests of qpnso.hqp against an independent sequential reference (equality form, exact active-set solvers)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import qpsolvers
+from hypothesis import given, settings as hsettings, strategies as st
+from scipy.optimize import linprog
+
+from qpnso.errors import InputError, SolverError
+from qpnso.hqp import HierarchicalQP, Level, LevelStatus, QPSettings, build_level_qp, Cascade
+
+N = 7
+BACKENDS = ["proxsuite", "daqp", "quadprog"]
+DELTA = 1e-10  # reference's Tikhonov term on x where a level is not strictly convex
+
+
+# ---------------------------------------------------------------- reference
+def _ref_level(P, q, lb, ub, eq, ineq, solver="quadprog"):
+    """min ½xᵀPx + qᵀx (x may be extended by slacks) s.t. equalities, two-sided rows, bounds."""
+    G, h = [], []
+    for C, lo, hi in ineq:
+        fu, fl = np.isfinite(hi), np.isfinite(lo)
+        G += [C[fu], -C[fl]]
+        h += [hi[fu], -lo[fl]]
+    A = np.vstack([e[0] for e in eq]) if eq else None
+    b = np.concatenate([e[1] for e in eq]) if eq else None
+    x = qpsolvers.solve_qp(P, q, np.vstack(G) if G else None, np.concatenate(h) if h else None,
+                           A, b, lb=lb, ub=ub, solver=solver)
+    assert x is not None, "reference solve failed"
+    return x
+
+
+def reference(levels: list[Level], lb, ub, solver="quadprog"):
+    """Lexicographic solution, level by level, in the *equality* form (independent of the
+    null-space implementation): a higher task's A_j x is fixed to its optimal value; its
+    soft rows keep their optimal slack; its hard rows stay; pure (H, g) levels keep their
+    optimal value through Lᵀx fixed (H = LLᵀ) and gᵀx fixed.  Returns x after each level."""
+    eq, ineq, xs = [], [], []
+    for level in levels:
+        ns = 0 if level.C is None or level.slack_weight is None else level.C.shape[0]
+        P = np.zeros((N + ns, N + ns))
+        q = np.zeros(N + ns)
+        if level.A is not None:
+            P[:N, :N] += 2 * level.A.T @ level.A
+            q[:N] -= 2 * level.A.T @ level.b
+        if level.H is not None:
+            P[:N, :N] += level.H
+        if level.g is not None:
+            q[:N] += level.g
+        P[:N, :N] += DELTA * np.eye(N)
+        if ns:
+            P[N:, N:] = 2 * level.slack_weight * np.eye(ns)
+        pad = lambda M: np.hstack([M, np.zeros((M.shape[0], ns))])  # noqa: E731
+        eq_k = [(pad(A), b) for A, b in eq]
+        ineq_k = [(pad(C), lo, hi) for C, lo, hi in ineq]
+        if level.C is not None:
+            C = np.hstack([level.C, np.eye(ns)]) if ns else level.C
+            ineq_k.append((C, level.l, level.u))
+        v = _ref_level(P, q, np.r_[lb, -1e9 * np.ones(ns)], np.r_[ub, 1e9 * np.ones(ns)], eq_k, ineq_k, solver)
+        x = v[:N]
+        xs.append(x)
+        if level.A is not None:
+            eq.append((level.A, level.A @ x))
+        if level.H is not None:
+            w, V = np.linalg.eigh(level.H)
+            L = V[:, w > 1e-9]
+            if L.shape[1]:
+                eq.append((L.T, L.T @ x))
+        if level.C is not None:
+            cx = level.C @ x
+            ineq.append((level.C, np.minimum(level.l, cx), np.maximum(level.u, cx)))
+    return xs
+
+
+# ----------------------------------------------------------------- problems
+def random_problem(seed: int, m1: int = 6, bound: float = 1.0, v_scale: float = 0.3):
+    rng = np.random.default_rng(seed)
+    while True:
+        J = rng.standard_normal((m1, N))
+        if np.linalg.svd(J, compute_uv=False).min() > 0.05:  # away from the damping threshold
+            break
+    M = rng.standard_normal((N, N))
+    H = M @ M.T / N + 0.5 * np.eye(N)
+    C = rng.standard_normal((2, N))
+    lo = np.array([-0.05, -np.inf])
+    hi = np.array([0.05, 0.02])
+    levels = [Level(A=J, b=v_scale * rng.standard_normal(m1)),
+              Level(H=H, g=rng.standard_normal(N), C=C, l=lo, u=hi, slack_weight=1e3)]
+    return levels, -bound * np.ones(N), bound * np.ones(N)
+
+
+def level_cost(level: Level, x: np.ndarray) -> float:
+    cost = 0.0
+    if level.A is not None:
+        cost += float(np.sum((level.A @ x - level.b) ** 2))
+    if level.H is not None:
+        cost += 0.5 * float(x @ level.H @ x)
+    if level.g is not None:
+        cost += float(level.g @ x)
+    return cost
+
+
+def assert_lexicographic(res, levels, lb, ub, xs_ref, tol_x=1e-6):
+    assert res.ok, res.status
+    assert np.all(np.isfinite(res.x))
+    assert np.all(res.x >= lb - 1e-8) and np.all(res.x <= ub + 1e-8)
+    np.testing.assert_allclose(res.x, xs_ref[-1], atol=tol_x)
+    for k, level in enumerate(levels):
+        if level.A is not None:  # lower levels do not change a higher task's residual
+            r_final = np.linalg.norm(level.A @ res.x - level.b)
+            assert abs(r_final - res.levels[k].residual) < 1e-9
+            assert abs(r_final - np.linalg.norm(level.A @ xs_ref[k] - level.b)) < 1e-6
+
+
+# -------------------------------------------------------------------- tests
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("seed", range(6))
+def test_two_levels_match_sequential_reference(backend, seed):
+    levels, lb, ub = random_problem(seed)
+    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    assert_lexicographic(res, levels, lb, ub, reference(levels, lb, ub))
+    assert [lv.status for lv in res.levels] == [LevelStatus.SOLVED] * 2
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_active_bounds_at_level_one(backend):
+    levels, lb, ub = random_problem(11, bound=0.2, v_scale=3.0)
+    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    active = np.isclose(res.levels[0].x, lb, atol=1e-7) | np.isclose(res.levels[0].x, ub, atol=1e-7)
+    assert active.sum() >= 2 and res.levels[0].residual > 1e-2  # the bounds bite at level 1
+    assert_lexicographic(res, levels, lb, ub, reference(levels, lb, ub))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_three_levels_with_psd_middle_level(backend):
+    """Level 2 has a rank-2 H and a g in its range: level 3 must not raise its cost."""
+    rng = np.random.default_rng(3)
+    J = rng.standard_normal((3, N))
+    L = rng.standard_normal((N, 2))
+    levels = [Level(A=J, b=0.2 * rng.standard_normal(3)),
+              Level(H=L @ L.T, g=L @ rng.standard_normal(2)),
+              Level(H=np.eye(N), g=rng.standard_normal(N))]
+    lb, ub = -0.5 * np.ones(N), 0.5 * np.ones(N)
+    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    assert_lexicographic(res, levels, lb, ub, reference(levels, lb, ub))
+    assert abs(level_cost(levels[1], res.x) - level_cost(levels[1], res.levels[1].x)) < 1e-9
+
+
+def test_linear_middle_level_keeps_its_optimum():
+    """A pure linear level (an LP over the null space, blocked by bounds) owns its gradient
+    direction: checked against an exact LP (HiGHS) and an equality-form final level."""
+    rng = np.random.default_rng(5)
+    J = rng.standard_normal((4, N))
+    b = 0.1 * rng.standard_normal(4)
+    g2 = rng.standard_normal(N)
+    g3 = rng.standard_normal(N)
+    lb, ub = -0.3 * np.ones(N), 0.3 * np.ones(N)
+    levels = [Level(A=J, b=b), Level(g=g2), Level(H=np.eye(N), g=g3)]
+    res = HierarchicalQP(N, backend="daqp").solve(levels, lb, ub)
+    assert res.ok, res.status
+    x1 = reference(levels[:1], lb, ub)[0]
+    lp = linprog(g2, A_eq=J, b_eq=J @ x1, bounds=list(zip(lb, ub)), method="highs")
+    assert abs(g2 @ res.x - lp.fun) < 1e-8
+    x3 = _ref_level(np.eye(N), g3, lb, ub, [(J, J @ x1), (g2[None], np.array([lp.fun]))], [], "quadprog")
+    np.testing.assert_allclose(res.x, x3, atol=1e-6)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_three_levels_two_tasks(backend):
+    rng = np.random.default_rng(8)
+    levels = [Level(A=rng.standard_normal((3, N)), b=0.2 * rng.standard_normal(3)),
+              Level(A=rng.standard_normal((2, N)), b=0.2 * rng.standard_normal(2), weight=np.array([1.0, 4.0])),
+              Level(H=np.diag(rng.uniform(0.5, 2, N)), g=rng.standard_normal(N))]
+    lb, ub = -0.4 * np.ones(N), 0.4 * np.ones(N)
+    ref_levels = [levels[0], Level(A=np.array([[1.0], [2.0]]) * levels[1].A, b=np.array([1.0, 2.0]) * levels[1].b),
+                  levels[2]]
+    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    xs = reference(ref_levels, lb, ub)
+    np.testing.assert_allclose(res.x, xs[-1], atol=1e-6)
+    assert abs(np.linalg.norm(levels[0].A @ res.x - levels[0].b) - res.levels[0].residual) < 1e-9
+    assert abs(np.linalg.norm(levels[1].A @ res.x - levels[1].b) - res.levels[1].residual) < 1e-9
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_rank_deficient_task_two_equal_rows(backend):
+    levels, lb, ub = random_problem(4)
+    J = levels[0].A.copy()
+    J[1] = J[0]
+    b = levels[0].b.copy()
+    b[1] = b[0] + 0.1  # inconsistent rows: the residual cannot vanish
+    levels[0] = Level(A=J, b=b)
+    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    assert res.levels[0].residual > 0.05
+    assert_lexicographic(res, levels, lb, ub, reference(levels, lb, ub))
+    # the exactly null direction is free for level 2: x differs from level 1's in a 2-D null space
+    assert np.linalg.norm(res.x - res.levels[0].x) > 1e-3
+
+
+def test_near_singular_task_is_damped_in_closed_form():
+    """σ < ε is damped to curvature ε² (gain σ/ε²), σ ≥ ε untouched: closed-form damped pseudo-inverse."""
+    rng = np.random.default_rng(2)
+    U, _ = np.linalg.qr(rng.standard_normal((6, 6)))
+    V, _ = np.linalg.qr(rng.standard_normal((N, N)))
+    sigma = np.array([2.0, 1.0, 0.5, 0.2, 3e-3, 1e-4])
+    J = U @ np.diag(sigma) @ V[:, :6].T
+    b = rng.standard_normal(6)
+    eps = 1e-2
+    hqp = HierarchicalQP(N, backend="daqp", settings=QPSettings(damping_threshold=eps))
+    res = hqp.solve([Level(A=J, b=b), Level(H=np.eye(N), g=rng.standard_normal(N))])
+    expected = V[:, :6] @ (sigma / np.maximum(sigma, eps) ** 2 * (U.T @ b))
+    np.testing.assert_allclose(res.levels[0].x, expected, atol=1e-7)
+    assert np.abs(res.levels[0].x).max() < np.linalg.norm(b) / eps
+    # damped directions stay owned by level 1: its residual is unchanged by level 2
+    assert abs(np.linalg.norm(J @ res.x - b) - res.levels[0].residual) < 1e-9
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_weighted_overdetermined_task_closed_form(backend):
+    rng = np.random.default_rng(6)
+    A, b, w = rng.standard_normal((9, N)), rng.standard_normal(9), rng.uniform(0.5, 3, 9)
+    res = HierarchicalQP(N, backend=backend).solve([Level(A=A, b=b, weight=w)])
+    x = np.linalg.solve(A.T @ (w[:, None] * A), A.T @ (w * b))
+    np.testing.assert_allclose(res.x, x, atol=1e-7)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_infeasible_soft_rows_take_slack(backend):
+    levels, lb, ub = random_problem(7)
+    J = levels[0].A
+    c = levels[0].A[0] + 0.5 * levels[0].A[1]  # a row of J: C x is fixed by level 1
+    level2 = Level(H=np.eye(N), g=np.zeros(N), C=np.vstack([c, -c]), l=np.array([5.0, 5.0]),
+                   u=np.array([np.inf, np.inf]), slack_weight=1e4)  # c·x >= 5 and c·x <= -5
+    res = HierarchicalQP(N, backend=backend).solve([Level(A=J, b=levels[0].b), level2], lb, ub)
+    assert res.ok and np.all(np.isfinite(res.x))
+    assert np.all(res.levels[1].slack > 1.0)
+    np.testing.assert_allclose(res.levels[1].slack, np.maximum(level2.l - level2.C @ res.x, 0), atol=1e-9)
+    assert_lexicographic(res, [levels[0], level2], lb, ub, reference([Level(A=J, b=levels[0].b), level2], lb, ub))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_soft_slack_of_a_higher_level_does_not_grow(backend):
+    rng = np.random.default_rng(9)
+    J = rng.standard_normal((4, N))
+    c = rng.standard_normal(N)
+    levels = [Level(A=J, b=np.zeros(4)),
+              Level(C=c[None], l=np.array([3.0]), u=np.array([np.inf]), slack_weight=1e3),  # unreachable
+              Level(H=np.eye(N), g=-10 * c)]  # pulls c·x the other way... and must not win
+    lb, ub = -0.2 * np.ones(N), 0.2 * np.ones(N)
+    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    assert res.ok, res.status
+    assert res.levels[1].slack[0] > 0.1
+    assert 3.0 - c @ res.x <= res.levels[1].slack[0] + 1e-8
+    np.testing.assert_allclose(res.x, reference(levels, lb, ub)[-1], atol=1e-6)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_hard_infeasible_level_two_falls_back_to_level_one(backend):
+    levels, lb, ub = random_problem(1)
+    bad = Level(H=np.eye(N), C=np.eye(N)[:1], l=np.array([5.0]), u=np.array([6.0]))  # x0 >= 5 > ub
+    res = HierarchicalQP(N, backend=backend).solve([levels[0], bad], lb, ub)
+    assert not res.ok and res.failed_level == 1
+    assert res.levels[1].status is not LevelStatus.SOLVED and "level 2" in res.status
+    assert np.all(np.isfinite(res.x))
+    np.testing.assert_array_equal(res.x, res.levels[0].x)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_hard_infeasible_level_one_gives_no_x(backend):
+    bad = Level(A=np.eye(N), b=np.zeros(N), C=np.ones((1, N)), l=np.array([100.0]), u=np.array([200.0]))
+    hqp = HierarchicalQP(N, backend=backend)
+    res = hqp.solve([bad, Level(H=np.eye(N))], -np.ones(N), np.ones(N))
+    assert not res.ok and res.x is None and res.failed_level == 0
+    assert res.levels[1].status is LevelStatus.SKIPPED
+    assert hqp.stats.failures == 1
+    # the next, feasible tick recovers (a failed ProxSuite result is not used as warm start)
+    ok = hqp.solve([Level(A=np.eye(N), b=0.1 * np.ones(N)), Level(H=np.eye(N))], -np.ones(N), np.ones(N))
+    assert ok.ok
+    np.testing.assert_allclose(ok.x, 0.1 * np.ones(N), atol=1e-7)
+
+
+def _sequence(T: int, seed: int = 0):
+    levels, lb, ub = random_problem(seed, bound=0.25)
+    rng = np.random.default_rng(seed + 100)
+    dJ, dg = rng.standard_normal(levels[0].A.shape), rng.standard_normal(N)
+    for t in range(T):
+        s = np.sin(2 * np.pi * t / T)
+        yield ([Level(A=levels[0].A + 0.05 * s * dJ, b=levels[0].b * (1 + s)),
+                Level(H=levels[1].H, g=levels[1].g + s * dg, C=levels[1].C, l=levels[1].l, u=levels[1].u,
+                      slack_weight=levels[1].slack_weight)], lb, ub)
+
+
+def test_warm_started_proxsuite_matches_cold_and_daqp():
+    warm = HierarchicalQP(N)
+    cold = HierarchicalQP(N, settings=QPSettings(warm_start=False))
+    exact = HierarchicalQP(N, backend="daqp")
+    for levels, lb, ub in _sequence(60):
+        xw, xc, xe = (h.solve(levels, lb, ub) for h in (warm, cold, exact))
+        assert xw.ok and xc.ok and xe.ok
+        np.testing.assert_allclose(xw.x, xc.x, atol=1e-6)
+        np.testing.assert_allclose(xw.x, xe.x, atol=1e-6)
+
+
+def test_qp_objects_created_once_per_level_and_shape():
+    hqp = HierarchicalQP(N)
+    seq = list(_sequence(100))
+    hqp.solve(*seq[0])
+    assert hqp.stats.qp_created == 2
+    for p in seq:
+        assert hqp.solve(*p).ok
+    assert hqp.stats.qp_created == 2 and hqp.stats.solves == 101
+    levels, lb, ub = seq[0]
+    no_rows = [levels[0], Level(H=levels[1].H, g=levels[1].g)]  # level 2 changes shape (elbow dropped)
+    hqp.solve(no_rows, lb, ub)
+    assert hqp.stats.qp_created == 3
+    hqp.solve(levels, lb, ub)
+    hqp.solve(no_rows, lb, ub)
+    assert hqp.stats.qp_created == 3  # both shapes are kept, no re-allocation when toggling
+
+
+def test_build_level_qp_is_the_level_objective():
+    """The built QP of level 2, evaluated at z, equals the level's cost at x = x1 + N z (up to a constant)."""
+    levels, lb, ub = random_problem(0)
+    hqp = HierarchicalQP(N, settings=QPSettings(regularization=0.0))
+    res = hqp.solve(levels, lb, ub)
+    from qpnso.hqp import advance_cascade
+    c0 = Cascade.start(lb, ub)
+    qp1 = build_level_qp(levels[0], c0)
+    assert qp1.E.shape == (0, N) and qp1.C.shape == (0, N)
+    c1 = advance_cascade(levels[0], c0, qp1, res.levels[0].x)
+    qp2 = build_level_qp(levels[1], c1)
+    assert qp2.H.shape == (N + 2, N + 2) and qp2.C.shape == (2, N + 2) and qp2.E.shape == (N, N + 2)
+    np.testing.assert_allclose(qp2.E[:, :N], np.eye(N) - c1.N, atol=1e-15)
+    assert np.linalg.matrix_rank(c1.N) == 1 and np.allclose(c1.N @ c1.N, c1.N)
+    np.testing.assert_allclose(levels[0].A @ c1.N, 0, atol=1e-12)
+    rng = np.random.default_rng(0)
+    vals = []
+    for _ in range(3):
+        z = c1.N @ rng.standard_normal(N)  # inside the null space
+        v = np.r_[z, 0, 0]  # zero slack
+        vals.append(0.5 * v @ qp2.H @ v + qp2.g @ v - level_cost(levels[1], qp2.x_of(v)))
+    np.testing.assert_allclose(vals, vals[0], atol=1e-9)
+
+
+@hsettings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), m1=st.integers(1, 6))
+def test_property_level_two_never_changes_level_one_residual(seed, m1):
+    levels, lb, ub = random_problem(seed, m1=m1, bound=0.3, v_scale=1.0)
+    res = HierarchicalQP(N).solve(levels, lb, ub)
+    assert res.ok, res.status
+    assert abs(np.linalg.norm(levels[0].A @ res.x - levels[0].b) - res.levels[0].residual) < 1e-9
+    assert np.all(res.x >= lb - 1e-8) and np.all(res.x <= ub + 1e-8)
+
+
+# ---------------------------------------------------------------- bad input
+GOOD = dict(A=np.ones((2, N)), b=np.zeros(2))
+
+
+@pytest.mark.parametrize("levels, lb, ub, name", [
+    ([Level(A=np.ones((2, N + 1)), b=np.zeros(2))], None, None, r"levels\[0\]\.A"),
+    ([Level(A=np.ones((2, N)), b=np.zeros(3))], None, None, r"levels\[0\]\.b"),
+    ([Level(**GOOD), Level(A=np.full((2, N), np.nan), b=np.zeros(2))], None, None, r"levels\[1\]\.A.*NaN"),
+    ([Level(**GOOD), Level(H=np.diag([np.inf] + [1.0] * (N - 1)))], None, None, r"levels\[1\]\.H.*inf"),
+    ([Level(**GOOD, g=np.zeros(N - 1))], None, None, r"levels\[0\]\.g"),
+    ([Level(C=np.ones((1, N)), l=np.array([1.0]), u=np.array([0.0]))], None, None, r"levels\[0\]\.l.*levels\[0\]\.u"),
+    ([Level(C=np.ones((1, N)), l=np.array([np.nan]), u=np.array([0.0]))], None, None, r"levels\[0\]\.l.*NaN"),
+    ([Level(C=np.ones((1, N)), l=np.array([0.0]), u=np.array([0.0]), slack_weight=-1.0)], None, None,
+     "slack_weight"),
+    ([Level(**GOOD, weight=-1.0)], None, None, "weight"),
+    ([Level()], None, None, "empty"),
+    ([], None, None, "levels"),
+    ([Level(**GOOD)], np.ones(N), np.zeros(N), r"lb\[0\].*ub\[0\]"),
+    ([Level(**GOOD)], np.zeros(N - 1), np.ones(N), "lb"),
+    ([Level(**GOOD)], np.zeros(N), np.full(N, np.nan), r"ub.*NaN"),
+])
+def test_bad_input_raises_input_error(levels, lb, ub, name):
+    with pytest.raises(InputError, match=name):
+        HierarchicalQP(N).solve(levels, lb, ub)
+
+
+def test_unknown_backend_raises_solver_error_listing_solvers():
+    with pytest.raises(SolverError, match=r"nosuchsolver.*daqp"):
+        HierarchicalQP(N, backend="nosuchsolver")
+    with pytest.raises(InputError):
+        HierarchicalQP(0)

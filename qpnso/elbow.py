@@ -54,17 +54,28 @@ _TAN, _COS, _CONST = 0, 1, 2
 
 
 # ----------------------------------------------------------------- arm angle
+def _tcross(a, b) -> tuple[float, float, float]:  # type: ignore[no-untyped-def]
+    """Cross product of two 3-sequences as a tuple (plain floats: fast for one pair)."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product of 3-vectors (faster than ``np.cross`` for one pair)."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+    """Cross product of 3-vectors as an array (faster than ``np.cross`` for one pair)."""
+    return np.array(_tcross(a, b))
 
 
 def _dot(a, b) -> float:  # type: ignore[no-untyped-def]
     return float(a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
 
 
-_NUMPY_OPS = (_cross, _dot, lambda a: math.sqrt(_dot(a, a)), math.atan2)
-_CASADI_OPS = (ca.cross, ca.dot, ca.norm_2, ca.atan2)
+_FLOAT_OPS = (
+    lambda a, b: (a[0] - b[0], a[1] - b[1], a[2] - b[2]),
+    _tcross,
+    _dot,
+    lambda a: math.sqrt(_dot(a, a)),
+    math.atan2,
+)
+_CASADI_OPS = (lambda a, b: a - b, ca.cross, ca.dot, ca.norm_2, ca.atan2)
 
 
 def _arm_angle_terms(ps, pe, pw, z0, ops):  # type: ignore[no-untyped-def]
@@ -76,9 +87,9 @@ def _arm_angle_terms(ps, pe, pw, z0, ops):  # type: ignore[no-untyped-def]
     and ``u_cos = p_sw × z_x/(|z_x| |p_sw|)`` the common positive factor
     ``1/|z_x|`` drops out of the atan2, so the expression has no division.
     """
-    cross, dot, norm, atan2 = ops
-    p_sw = pw - ps
-    p_se = pe - ps
+    sub, cross, dot, norm, atan2 = ops
+    p_sw = sub(pw, ps)
+    p_se = sub(pe, ps)
     n_sw = norm(p_sw)
     z_x = cross(z0, p_sw)
     ns = atan2(n_sw * dot(p_se, z_x), dot(p_se, cross(p_sw, z_x)))
@@ -201,8 +212,8 @@ def _status_after_fk(
     robot: Robot, wrist_cone_deg: float = WRIST_CONE_DEG, elbow_offset_min: float = ELBOW_OFFSET_MIN_M
 ) -> ArmAngle:
     """:func:`arm_angle_status` from ``robot.data`` after forward kinematics."""
-    ps, pe, pw = elbow_points(robot).world(robot.data)
-    ns, wrist_sin, offset = _arm_angle_terms(ps, pe, pw, Z0, _NUMPY_OPS)
+    ps, pe, pw = (p.tolist() for p in elbow_points(robot).world(robot.data))
+    ns, wrist_sin, offset = _arm_angle_terms(ps, pe, pw, (0.0, 0.0, 1.0), _FLOAT_OPS)
     if not wrist_sin >= math.sin(math.radians(wrist_cone_deg)):
         return ArmAngle(ns if wrist_sin > 0 else math.nan, "wrist_vertical", wrist_sin, offset)
     if not offset >= elbow_offset_min:
@@ -274,6 +285,10 @@ def branch(robot: Robot, q: object) -> Branch:
     qv = as_vector(q, robot.nq, "q")
     if robot.nq != 7:
         raise ModelError(f"{robot.name}: a branch (signs of joints 2, 4, 6) needs a 7-joint arm")
+    return _branch_of(qv)
+
+
+def _branch_of(qv: np.ndarray) -> Branch:
     values = [float(qv[k]) for k in (1, 3, 5)]
     for k, v in zip((2, 4, 6), values):
         if v == 0.0:
@@ -429,11 +444,11 @@ class SelfMotion:
         return q[0] if arr.ndim == 0 else q
 
 
-def _rotation_coefficients(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[np.ndarray, np.ndarray, float]:
+def _rotation_coefficients(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[np.ndarray, float]:
     """``R03`` and ``R47`` (canonical frame) as affine maps of ``(cos ns, sin ns)``.
 
-    Returns ``K03``, ``K47`` of shape (3, 3, 3) — index 0: constant, 1: cos, 2:
-    sin coefficient — and joint 4 (rad).  Raises UnreachableError or
+    Returns ``K`` of shape (2, 3, 3, 3) — ``K[0]``: R03, ``K[1]``: R47; second
+    index 0: constant, 1: cos, 2: sin coefficient matrix — and joint 4 (rad).  Raises UnreachableError or
     SingularityError (wrist on the vertical, straight elbow).
     """
     l1, l2 = g.upper_arm_m, g.forearm_m
@@ -467,11 +482,12 @@ def _rotation_coefficients(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[np
     col_x = ((-(l1 / l2) - cos4) * scale) * e  # R03·ex = (e2 − e1 cos q4)/(σ4 sin q4), e2 = (d·u − l1·e1)/l2
     col_x[0] += (dist / l2) * scale * u_c
     col_y = ((dist / l2) * scale) * (e @ skew)  # R03·ey = e1 × R03·ex = (d/l2)(e1 × u)/(σ4 sin q4)
-    k03 = np.stack([col_x, col_y, e], axis=2)  # k03[i] = [R03·ex, R03·ey, R03·ez] coefficient i
+    k = np.empty((2, 3, 3, 3))
+    k[0] = np.array([col_x, col_y, e]).transpose(1, 2, 0)  # k[0, i] = [R03·ex, R03·ey, R03·ez], coefficient i
     q4 = b.s4 * math.acos(max(-1.0, min(1.0, cos4)))
     target = g.frame.T @ rot @ g.tool_rotation0.T @ g.frame
-    k47 = np.matmul((k03 @ _ry(g.axis_sign[3] * q4)).transpose(0, 2, 1), target)  # (R03·R4)ᵀ·T, linear in R03
-    return k03, k47, q4
+    np.matmul((k[0] @ _ry(g.axis_sign[3] * q4)).transpose(0, 2, 1), target, out=k[1])  # R47 = (R03·R4)ᵀ·T
+    return k, q4
 
 
 # Z-Y-Z extraction, Rz(σa·qa)·Ry(σb·qb)·Rz(σc·qc) = M:  qa = σa·atan2(sb·M12, sb·M02),
@@ -500,9 +516,9 @@ def _branch_table(g: SrsGeometry, b: Branch) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _self_motion(g: SrsGeometry, pose: pin.SE3, b: Branch) -> SelfMotion:
-    k03, k47, q4 = _rotation_coefficients(g, pose, b)
+    k, q4 = _rotation_coefficients(g, pose, b)
     mult, sign = _branch_table(g, b)
-    rows = np.stack([k03, k47])[_ROWS[:, 0:1], _SIN_COS_CONST, _ROWS[:, 1:2], _ROWS[:, 2:3]] * mult
+    rows = k[_ROWS[:, 0:1], _SIN_COS_CONST, _ROWS[:, 1:2], _ROWS[:, 2:3]] * mult
     return SelfMotion(rows[:7], rows[7:], _KIND, sign, q4, b)
 
 

@@ -38,6 +38,7 @@ import pinocchio as pin
 from qpnso.elbow import (
     SelfMotion,
     _TAN,
+    _branch_of,
     _checked,
     _self_motion,
     _status_after_fk,
@@ -59,12 +60,16 @@ SINGULAR_TOL = 1e-12
 _MERGE_TOL = 1e-12
 _FEASIBLE_TOL = 1e-10
 _ALL_JOINTS = np.arange(7)
+_PLUS_MINUS = np.array([[1.0], [-1.0]])
 
 
 @dataclass(frozen=True)
 class Cause:
-    """What ends an interval: a joint limit (``"limit"``, ``bound`` "min"/"max") or
-    a singular point (``"singular"``: joint 2 or 6 through 0).  ``joint`` is 0-based."""
+    """What ends an interval: a joint limit (``"limit"``, ``bound`` "min"/"max"),
+    a singular point (``"singular"``: joint 2 or 6 through 0 in the closed form;
+    a rank-deficient Jacobian or undefined arm angle in the numerical method,
+    ``joint = -1``) or, numerical method only, ``"unfinished"`` (step budget
+    exhausted).  ``joint`` is 0-based."""
 
     kind: str
     joint: int
@@ -126,6 +131,8 @@ class _RowTable:
     sin_phi: np.ndarray
     cz: np.ndarray
     rate_sign: np.ndarray
+    cosine: np.ndarray
+    is_max: np.ndarray
 
 
 _TABLES: dict[tuple, _RowTable] = {}
@@ -145,7 +152,9 @@ def _row_table(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray) -> _RowTabl
         cz = np.zeros((joint.size, 3))
         cz[:, 2] = np.cos(theta)
         rate = np.where(tangent, sm.sign[joint], -sm.sign[joint])
-        table = _RowTable(joint, bound, tangent[:, None], np.cos(phi)[:, None], np.sin(phi)[:, None], cz, rate)
+        table = _RowTable(
+            joint, bound, tangent[:, None], np.cos(phi)[:, None], np.sin(phi)[:, None], cz, rate, ~tangent, bound == 1
+        )
         _TABLES[key] = table
     return table
 
@@ -170,7 +179,7 @@ def _solve_sin_cos(a: np.ndarray, b: np.ndarray, c: np.ndarray, with_slope: bool
     ok = (r > 1e-14) & (np.abs(c) <= r)
     delta = np.arccos(np.clip(c / np.maximum(r, 1e-14), -1.0, 1.0))
     base = np.arctan2(a, b)
-    roots = np.stack([base + delta, base - delta])
+    roots = base + _PLUS_MINUS * delta
     f = a * np.sin(roots) + b * np.cos(roots) - c
     df = a * np.cos(roots) - b * np.sin(roots)
     steep = np.abs(df) > 1e-6 * r
@@ -178,8 +187,7 @@ def _solve_sin_cos(a: np.ndarray, b: np.ndarray, c: np.ndarray, with_slope: bool
     roots = np.where(ok, roots - step, np.nan)
     if not with_slope:
         return roots
-    slope = r * np.sin(delta)
-    return roots, np.stack([-slope, slope])
+    return roots, -_PLUS_MINUS * (r * np.sin(delta))
 
 
 def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):  # type: ignore[no-untyped-def]
@@ -266,12 +274,11 @@ def _closed_form_interval(sm: SelfMotion, ns0: float, q_min: np.ndarray, q_max: 
     roots, slope = _solve_sin_cos(e[:, 0], e[:, 1], -e[:, 2], with_slope=True)
     g = num * t.sin_phi + den * t.cos_phi
     along = g[:, 0] * np.sin(roots) + g[:, 1] * np.cos(roots) + g[:, 2]
-    ok = (~t.tangent[:, 0] | (along > 0)) & np.isfinite(roots)
-    up = (slope * t.rate_sign > 0) == (t.bound == 1)
-    ahead = (roots - ns0) % TWO_PI
-    behind = (ns0 - roots) % TWO_PI
+    ok = (t.cosine | (along > 0)) & np.isfinite(roots)
+    up = (slope * t.rate_sign > 0) == t.is_max
+    ahead = (roots - ns0) % TWO_PI  # behind = 2π − ahead; ends within 1e-9 of ns0 count as 0
+    behind = np.where(ok & ~up, np.where(ahead < 1e-9, 0.0, TWO_PI - ahead), np.inf).reshape(-1)
     ahead = np.where(ok & up, np.where(ahead > TWO_PI - 1e-9, 0.0, ahead), np.inf).reshape(-1)
-    behind = np.where(ok & ~up, np.where(behind > TWO_PI - 1e-9, 0.0, behind), np.inf).reshape(-1)
     i_hi, i_lo = int(np.argmin(ahead)), int(np.argmin(behind))
     n = t.joint.size
     hi = (float(ahead[i_hi]), ("limit", int(t.joint[i_hi % n]), _BOUNDS[t.bound[i_hi % n]]))
@@ -320,7 +327,7 @@ def continuity_interval(robot: Robot, q: object, options: "NumericalOptions | No
     pin.framesForwardKinematics(robot.model, robot.data, qv)
     ns = _checked(_status_after_fk(robot))
     pose = robot.data.oMf[robot.tool_frame_id]
-    sm = _self_motion(srs_geometry(robot), pose, branch(robot, qv))
+    sm = _self_motion(srs_geometry(robot), pose, _branch_of(qv))
     return _closed_form_interval(sm, ns, robot.q_min, robot.q_max)
 
 
@@ -403,7 +410,7 @@ def _walk(robot: Robot, q0: np.ndarray, ns0: float, direction: np.ndarray, targe
         q, d = q_new, d_new
         if abs(ns - ns0) >= TWO_PI:
             return ns, None, q
-    return ns, None, q
+    return ns, Cause("unfinished", -1), q  # max_steps reached: an end that is not a limit
 
 
 def numerical_interval(robot: Robot, q: object, options: NumericalOptions | None = None) -> Interval:

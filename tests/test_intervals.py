@@ -78,6 +78,7 @@ def test_brute_force_1000_poses(robot: Robot) -> None:
         interval = I.continuity_interval(robot, q)
         ns = E.arm_angle(robot, q)
         assert interval.lo <= ns <= interval.hi and interval.width <= TWO_PI + 1e-12
+        assert interval.contains(ns + TWO_PI) and interval.contains(ns - TWO_PI)
         if interval.full_circle:
             assert psi == [(-math.pi, math.pi)]
         else:

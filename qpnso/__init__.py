@@ -6,7 +6,20 @@ elbow stays in its range of motion, clipped to the arm-angle interval the joint
 limits allow.  See METHOD.md for the equations each module implements.
 """
 
+from qpnso.controller import STRATEGIES, Command, Controller, ControllerConfig, Status
 from qpnso.costs import TERMS, CostModel, CostWeights, DirectionalCost
+from qpnso.elbow import (
+    ArmAngle,
+    Branch,
+    ElbowPoints,
+    arm_angle,
+    arm_angle_gradient,
+    arm_angle_status,
+    branch,
+    elbow_points,
+    ik,
+    self_motion,
+)
 from qpnso.errors import (
     ConfigError,
     FrameNotFoundError,
@@ -20,13 +33,43 @@ from qpnso.errors import (
     TrajectoryError,
     UnreachableError,
 )
+from qpnso.hqp import HierarchicalQP, Level, QPSettings
+from qpnso.intervals import Interval, continuity_interval, feasible_intervals
 from qpnso.robot import JointFriction, Robot, load_robot
+from qpnso.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
 from qpnso.symbolic import SymbolicModel
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "STRATEGIES",
     "TERMS",
+    "ArmAngle",
+    "Branch",
+    "ClippedRom",
+    "Command",
+    "Controller",
+    "ControllerConfig",
+    "ElbowConfig",
+    "ElbowPoints",
+    "HierarchicalQP",
+    "Interval",
+    "Level",
+    "QPSettings",
+    "Status",
+    "arm_angle",
+    "arm_angle_gradient",
+    "arm_angle_status",
+    "branch",
+    "clip_rom",
+    "continuity_interval",
+    "elbow_points",
+    "feasible_intervals",
+    "ik",
+    "rom_bounds",
+    "self_motion",
+    "setpoint",
+    "stiffness",
     "ConfigError",
     "CostModel",
     "CostWeights",

@@ -35,9 +35,8 @@ def sample_configuration(robot) -> np.ndarray:
     """A non-singular configuration inside the limits: elbow bent, wrist bent (rad)."""
     q = np.zeros(robot.nq)
     q[1], q[3], q[5] = 0.5, -1.2, 0.8
-    if robot.name == "panda":
-        q = 0.5 * (robot.q_min + robot.q_max)
-        q[3] = -1.5
+    if robot.name == "panda":  # Franka's "ready" posture
+        q = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
     return np.clip(q, robot.q_min, robot.q_max)
 
 

@@ -64,7 +64,8 @@ def as_vector(x: object, n: int, name: str) -> np.ndarray:
         v = v.reshape(-1)
     if v.shape != (n,):
         raise InputError(f"{name} must have shape ({n},), got {v.shape}")
-    if not np.all(np.isfinite(v)):
+    total = float(v.sum())  # one reduction; finite sum <=> finite entries (overflow: full check)
+    if total - total != 0.0 and not np.all(np.isfinite(v)):
         bad = np.flatnonzero(~np.isfinite(v)).tolist()
         raise InputError(f"{name} contains NaN or inf at index {bad}")
     return v
@@ -218,15 +219,31 @@ def _model_from_urdf(path: Path) -> pin.Model:
         raise ModelError(f"cannot parse URDF {path}: {exc}") from None
 
 
-def _panda_model() -> pin.Model:
+PANDA_URDF = Path("share/example-robot-data/robots/panda_description/urdf/panda.urdf")
+"""Where the PyPI ``example-robot-data`` wheel puts the Panda, below its ``cmeel.prefix``."""
+
+
+def _panda_urdf() -> Path | None:
+    """The Panda URDF of an installed ``example-robot-data``, if any."""
+    import importlib.metadata
+
     try:
-        import example_robot_data as erd
-    except ImportError:
+        dist = importlib.metadata.distribution("example-robot-data")
+    except importlib.metadata.PackageNotFoundError:
+        return None
+    path = Path(str(dist.locate_file(Path("cmeel.prefix") / PANDA_URDF)))
+    return path if path.is_file() else None
+
+
+def _panda_model() -> pin.Model:
+    """Franka Panda arm (fingers locked) from the optional ``example-robot-data``."""
+    urdf = _panda_urdf()
+    if urdf is None:
         raise RobotNotFoundError(
             "robot 'panda' needs the optional package example-robot-data "
             "(pip install 'qpnso[robots]')"
-        ) from None
-    full = erd.load("panda").model
+        )
+    full = _model_from_urdf(urdf)
     fingers = [full.getJointId(n) for n in full.names if "finger" in n]
     return pin.buildReducedModel(full, fingers, pin.neutral(full)) if fingers else full
 

@@ -131,8 +131,12 @@ def clip_rom(ns0: float, half_width: float, interval: Interval, margin: float) -
 def stiffness(ns: float | np.ndarray, ns0: float, cfg: ElbowConfig) -> float | np.ndarray:
     """Elbow stiffness (N·m/rad), double symmetric sigmoid [E 6]:
     ``K = (Kmax − Kmin)/(1 + exp(α (d − |ns − ns0|))) + Kmin``."""
+    span = cfg.stiffness_max - cfg.stiffness_min
+    if isinstance(ns, float):  # the per-tick path: plain floats
+        x = cfg.alpha_per_rad * (cfg.d_rad - abs(ns - ns0))
+        return span * 0.5 * (1.0 - math.tanh(0.5 * x)) + cfg.stiffness_min
     x = cfg.alpha_per_rad * (cfg.d_rad - np.abs(np.asarray(ns, dtype=float) - ns0))
-    k = (cfg.stiffness_max - cfg.stiffness_min) * 0.5 * (1.0 - np.tanh(0.5 * x)) + cfg.stiffness_min
+    k = span * 0.5 * (1.0 - np.tanh(0.5 * x)) + cfg.stiffness_min
     return float(k) if np.ndim(k) == 0 else k
 
 

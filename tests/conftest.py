@@ -3,7 +3,6 @@ a test asks for compiled code itself, so the suite does not spend its time in gc
 
 from __future__ import annotations
 
-import importlib.util
 import os
 
 import numpy as np
@@ -12,9 +11,10 @@ import pytest
 os.environ.setdefault("QPNSO_COMPILE", "off")
 
 import qpnso  # noqa: E402
+import qpnso.robot  # noqa: E402
 
 SRS_ROBOTS = ["lwr4p", "iiwa14"]
-HAS_PANDA = importlib.util.find_spec("example_robot_data") is not None
+HAS_PANDA = qpnso.robot._panda_urdf() is not None
 ALL_ROBOTS = SRS_ROBOTS + (["panda"] if HAS_PANDA else [])
 
 

@@ -1,0 +1,405 @@
+"""The per-tick controller: what a user puts in a 1 kHz control loop (METHOD §7).
+
+``Controller(robot, ControllerConfig(...))``, ``reset(q0)``, then every tick
+``step(q, dq, tool_twist) -> Command``.  Each tick:
+
+1. the arm's state from one CasADi call (:mod:`qpnso.state`);
+2. the elbow: arm angle unwrapped along the run, continuity interval
+   (:mod:`qpnso.intervals`, cached while the tool pose is unchanged), the ROM
+   clipped to it with the safety margin, the stiffness sigmoid (:mod:`qpnso.rom`);
+3. the hierarchical QP (:mod:`qpnso.hqp`): level 1 ``J q̇ = v_tool + K_p e_pose``,
+   level 2 whatever the strategy asks (:mod:`qpnso.strategies`), hard joint
+   position/velocity bounds on both;
+4. the command: ``dq``, ``q_des = q + dt·dq`` and the torque
+   ``τ = g(q) + Nᵀ τ_null`` with the dynamically consistent null-space projector.
+
+A failed or infeasible QP never reaches the robot: the command falls back to
+the level-1 solution (tool held, no null-space motion) or, if level 1 failed
+too, to zero velocity, and ``Command.status`` says so.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import time
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import numpy as np
+import pinocchio as pin
+from scipy.linalg.lapack import dpotrf as _dpotrf, dpotrs as _dpotrs
+
+from qpnso.costs import CostModel, CostWeights
+from qpnso.errors import ConfigError, QpnsoError
+from qpnso.hqp import HierarchicalQP, Level, QPSettings
+from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
+from qpnso.intervals import Interval, continuity_interval
+from qpnso.robot import Robot, as_vector
+from qpnso.rom import ElbowConfig, clip_rom, stiffness
+from qpnso.state import StateEvaluator, TickState
+
+_DIAG6 = np.diag_indices(6)
+
+
+def _norm(v: np.ndarray) -> float:
+    """Euclidean norm of a small vector (cheaper than np.linalg.norm per call)."""
+    return math.sqrt(float(v @ v))
+
+
+_WRIST_SIN_MIN = float(np.sin(np.radians(WRIST_CONE_DEG)))
+STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom")
+
+
+class Status(enum.Flag):
+    """What happened in a tick; several flags may be set at once."""
+
+    OK = 0
+    QP_FAILED = enum.auto()  # a QP level failed: safe fallback command
+    ELBOW_DROPPED = enum.auto()  # arm angle singular: elbow constraints dropped
+    ELBOW_SLACK = enum.auto()  # elbow bounds not met this tick: moving back
+    ROM_EMPTY = enum.auto()  # ROM ∩ interval (with margin) empty: the nearest point kept
+    Q_OUT_OF_LIMITS = enum.auto()  # q outside its limits: velocity bounds push it back
+    INTERVAL_STALE = enum.auto()  # the continuity interval could not be updated
+    TOOL_LIMITED = enum.auto()  # level 1 residual not zero (bounds or singularity)
+
+
+@dataclass
+class ControllerConfig:
+    """Every setting of the controller.  Angles in degrees where marked ``_deg``.
+
+    The defaults are the papers' where they give one (ROM, margin, stiffness,
+    DP damping, FOP stiffness, gradient gains), ours otherwise.
+    """
+
+    dt: float = 1e-3  # s, tick length
+    strategy: str = "qp"
+    weights: CostWeights = field(default_factory=CostWeights)
+    potential_speed: float = 0.05  # m/s, s of [M 13]
+    potential_angular_speed: float = 0.5  # rad/s
+    rom_half_width_deg: float = 50.0  # Δns [E 5]
+    safety_margin_deg: float = 10.0  # d_sg [E 10], [E 11]
+    stiffness_min: float = 10.0  # N·m/rad [E 6]
+    stiffness_max: float = 30.0  # N·m/rad
+    stiffness_slope: float | None = None  # α (1/rad) of [E 6]; None: rom.py's default
+    stiffness_inflection_deg: float | None = None  # d of [E 6]; None: rom.py's default
+    pose_gain: float = 200.0  # 1/s, K_p of level 1
+    cost_gain: float = 10.0  # rad²/s per unit cost: level-2 step -gain·∇c
+    nullspace_speed_max: float = 1.0  # rad/s, saturation of the cost step (as [M 21])
+    elbow_gain: float = 5.0  # 1/s, velocity damper of the elbow bounds
+    joint_limit_gain: float = 20.0  # 1/s, velocity damper of the joint limits (≤ 1/dt)
+    slack_weight: float = 1e6  # weight of the elbow constraints' slack
+    joint_damping: float = 10.0  # N·m·s/rad, null-space damping (DP)
+    posture_stiffness: float = 30.0  # N·m/rad, FOP / elbow-up
+    posture_gain: float = 2.0  # 1/s, kinematic rate towards a posture
+    fixed_posture: tuple[float, ...] | None = None  # rad; None: the reset posture
+    gradient_kp: float = 50.0  # [M 20]
+    gradient_kd: float = 10.0  # [M 20], [M 22]
+    gradient_omega_max: float = 10.0  # rad/s [M 21]
+    elbow_up_angle_deg: float = 0.0  # arm angle the elbow-up strategy holds
+    interval_period: int = 10  # ticks between interval updates while the tool moves
+    qp_backend: str = "proxsuite"
+    qp_settings: QPSettings = field(default_factory=QPSettings)
+    compile: str | None = None  # CasADi evaluation: background|sync|off (codegen.py)
+
+    def __post_init__(self) -> None:
+        if self.strategy not in STRATEGIES:
+            raise ConfigError(f"unknown strategy {self.strategy!r}; choose one of {STRATEGIES}")
+        if not (0 < self.dt <= 0.1):
+            raise ConfigError(f"dt must be in (0, 0.1] s, got {self.dt}")
+        positive = ("pose_gain", "cost_gain", "nullspace_speed_max", "elbow_gain", "joint_limit_gain",
+                    "slack_weight", "posture_gain", "gradient_kd", "gradient_omega_max")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.joint_limit_gain * self.dt > 1.0:
+            raise ConfigError("joint_limit_gain·dt must be <= 1 (else a joint could cross its limit)")
+        if self.rom_half_width_deg <= 0 or self.safety_margin_deg < 0:
+            raise ConfigError("rom_half_width_deg must be > 0 and safety_margin_deg >= 0")
+        if self.interval_period < 1:
+            raise ConfigError("interval_period must be >= 1 tick")
+        if isinstance(self.weights, dict):
+            self.weights = CostWeights(**self.weights)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "ControllerConfig":
+        """Build from plain data (a TOML table); unknown keys are named in the error."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"unknown controller setting(s) {unknown}; known: {sorted(known)}")
+        data = dict(values)
+        if isinstance(data.get("weights"), dict):
+            try:
+                data["weights"] = CostWeights(**data["weights"])
+            except TypeError as exc:
+                raise ConfigError(f"bad [weights] table: {exc}") from None
+        if isinstance(data.get("qp_settings"), dict):
+            try:
+                data["qp_settings"] = QPSettings(**data["qp_settings"])
+            except TypeError as exc:
+                raise ConfigError(f"bad [qp_settings] table: {exc}") from None
+        return cls(**data)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def elbow(self) -> ElbowConfig:
+        """The ROM/stiffness settings as :class:`qpnso.rom.ElbowConfig`."""
+        d = None if self.stiffness_inflection_deg is None else np.radians(self.stiffness_inflection_deg)
+        return ElbowConfig(
+            half_width_deg=self.rom_half_width_deg,
+            safety_margin_deg=self.safety_margin_deg,
+            stiffness_min=self.stiffness_min,
+            stiffness_max=self.stiffness_max,
+            alpha=self.stiffness_slope,
+            d=d,
+        )
+
+
+@dataclass
+class Command:
+    """The controller's output for one tick (rad, rad/s, N·m, s; world frame)."""
+
+    dq: np.ndarray  # joint velocity command, rad/s
+    q_des: np.ndarray  # joint set-point q + dt·dq, rad
+    tau: np.ndarray  # torque command: g(q) + Nᵀ τ_null, N·m
+    stiffness: float  # null-space stiffness K(ns) [E 6], N·m/rad
+    arm_angle: float  # ns, rad, unwrapped along the run
+    rom: tuple[float, float]  # ROM_t [E 10], [E 11], rad (same unwrapping)
+    interval: tuple[float, float]  # continuity interval [E 9], rad
+    cost: float  # weighted cost [M 18] at q
+    status: Status
+    solve_time: float  # s, QP time of this tick
+    tick_time: float  # s, the whole step()
+    tool_error: tuple[float, float]  # (m, rad) pose error before this tick's correction
+    message: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not (self.status & (Status.QP_FAILED | Status.ELBOW_DROPPED))
+
+
+@dataclass
+class ElbowState:
+    """The elbow's quantities at one tick (rad, unwrapped along the run)."""
+
+    ns: float
+    rom: tuple[float, float]
+    interval: tuple[float, float]
+    stiffness: float
+    status: Status
+    dropped: bool = False  # arm angle singular: no elbow constraint this tick
+
+
+class Controller:
+    """Hierarchical-QP null-space controller of a 7-DOF arm (METHOD §7)."""
+
+    def __init__(self, robot: Robot, config: ControllerConfig | None = None) -> None:
+        from qpnso.strategies import make_strategy
+
+        self.robot = robot
+        self.config = config or ControllerConfig()
+        cfg = self.config
+        self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed,
+                              compile=cfg.compile)
+        self.evaluate = StateEvaluator(self.cost, compile=cfg.compile)
+        self.elbow_config = cfg.elbow()
+        self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
+        self.strategy = make_strategy(cfg.strategy, self)
+        self._reset_done = False
+
+    # ---------------------------------------------------------------- reset
+    def reset(self, q0: object, ns0: float | None = None) -> None:
+        """Start a run at ``q0`` (rad): holds its tool pose, centres the ROM on its arm angle.
+
+        ``ns0`` (rad) overrides the ROM centre.
+        """
+        q = self.robot.check_q(q0, "q0")
+        state = self.evaluate(q)
+        self.q0 = q
+        self.ref_rotation = state.tool_rotation.copy()
+        self.ref_position = state.tool_position.copy()
+        self.ns0 = float(state.arm_angle if ns0 is None else ns0)
+        self._ns_prev = float(state.arm_angle)
+        self._ns_turns = 0.0
+        self._interval: Interval | None = None
+        self._interval_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self._interval_age = 0
+        self._dq_prev = np.zeros(self.robot.nq)
+        self.strategy.reset(q, state)
+        self._reset_done = True
+        self.step_count = 0
+
+    # ----------------------------------------------------------------- step
+    def step(self, q: object, dq: object = None, tool_twist: object = None,
+             tool_pose: pin.SE3 | None = None) -> Command:
+        """One tick.
+
+        ``q`` (rad) measured joints; ``dq`` (rad/s) measured joint velocity
+        (None: the previous command is assumed); ``tool_twist`` (6,) the tool
+        motion the surgeon or trajectory imposes, world frame, linear velocity of
+        the tool point (m/s) then angular velocity (rad/s) — None holds the tool;
+        ``tool_pose`` (``pinocchio.SE3``) a reference pose for this tick (offline
+        tracking), otherwise the reference integrates ``tool_twist``.
+        """
+        t0 = time.perf_counter()
+        if not self._reset_done:
+            raise QpnsoError("call Controller.reset(q0) before step()")
+        qv, status = self._check_input(q)
+        dq_meas = self._dq_prev if dq is None else as_vector(dq, self.robot.nq, "dq")
+        twist = np.zeros(6) if tool_twist is None else as_vector(tool_twist, 6, "tool_twist")
+        if tool_pose is not None:
+            self.ref_rotation, self.ref_position = tool_pose.rotation.copy(), tool_pose.translation.copy()
+        state = self.evaluate(qv)
+        error = self._pose_error(state)
+        elbow = self._elbow(state)
+        status |= elbow.status
+        lb, ub = self._velocity_bounds(qv)
+        level1 = Level(A=state.jacobian, b=twist + self.config.pose_gain * error)
+        level2 = self.strategy.level2(state, elbow)
+        levels = [level1] if level2 is None else [level1, level2]
+        result = self.qp.solve(levels, lb, ub)
+        dq_cmd, qp_status, message = self._command_velocity(result, len(levels))
+        status |= qp_status
+        tau = self._torque(state, dq_cmd, dq_meas, elbow)
+        self._advance_reference(twist, tool_pose is not None)
+        self._dq_prev = dq_cmd
+        self.step_count += 1
+        return Command(
+            dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=elbow.stiffness,
+            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost, status=status,
+            solve_time=result.solve_time, tick_time=time.perf_counter() - t0,
+            tool_error=(_norm(error[:3]), _norm(error[3:])), message=message,
+        )
+
+    # ------------------------------------------------------------- helpers
+    def _check_input(self, q: object) -> tuple[np.ndarray, Status]:
+        """Shape/NaN → InputError; outside the limits is recovered (flagged), not refused."""
+        qv = as_vector(q, self.robot.nq, "q")
+        r = self.robot
+        if np.any(qv < r.q_min - 1e-9) or np.any(qv > r.q_max + 1e-9):
+            return qv, Status.Q_OUT_OF_LIMITS
+        return qv, Status.OK
+
+    def _pose_error(self, state: TickState) -> np.ndarray:
+        """(position error m, rotation error rad) of the reference w.r.t. the tool, world frame."""
+        dp = self.ref_position - state.tool_position
+        dr = pin.log3(self.ref_rotation @ state.tool_rotation.T)
+        return np.concatenate([dp, dr])
+
+    def _advance_reference(self, twist: np.ndarray, external: bool) -> None:
+        if external or not np.any(twist):
+            return
+        dt = self.config.dt
+        self.ref_position = self.ref_position + dt * twist[:3]
+        self.ref_rotation = pin.exp3(dt * twist[3:]) @ self.ref_rotation
+
+    def _velocity_bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Joint velocity limits and a position damper: q never crosses its limits.
+
+        ``-γ(q - q_min) ≤ q̇ ≤ γ(q_max - q)`` with γ·dt ≤ 1, clipped to ±dq_max;
+        outside a limit the same rows push back at rate γ.
+        """
+        gain = self.config.joint_limit_gain
+        r = self.robot
+        lb = np.clip(-gain * (q - r.q_min), -r.dq_max, r.dq_max)
+        ub = np.clip(gain * (r.q_max - q), -r.dq_max, r.dq_max)
+        return lb, np.maximum(ub, lb)
+
+    def _elbow(self, state: TickState) -> ElbowState:
+        """Arm angle (unwrapped), continuity interval, ROM_t [E 10], [E 11] and K(ns) [E 6].
+
+        A singular arm angle (wrist near the vertical through the shoulder, or a
+        straight elbow) drops the elbow constraints for the tick.
+        """
+        cfg = self.elbow_config
+        if state.wrist_sin < _WRIST_SIN_MIN or state.elbow_offset < ELBOW_OFFSET_MIN_M:
+            ns = self._ns_prev
+            k = float(stiffness(ns, self.ns0, cfg))
+            return ElbowState(ns, (ns, ns), (ns - np.pi, ns + np.pi), k, Status.ELBOW_DROPPED, dropped=True)
+        ns = self._unwrap(state.arm_angle)
+        interval, stale = self._continuity(state, ns)
+        status = Status.INTERVAL_STALE if stale else Status.OK
+        rom = clip_rom(self.ns0, cfg.half_width_rad, interval, cfg.safety_margin_rad)
+        if rom.empty:
+            status |= Status.ROM_EMPTY
+        k = float(stiffness(ns, self.ns0, cfg))
+        return ElbowState(ns, (rom.lo, rom.hi), (interval.lo, interval.hi), k, status)
+
+    def _unwrap(self, ns_wrapped: float) -> float:
+        d = (ns_wrapped - self._ns_prev + np.pi) % (2 * np.pi) - np.pi
+        ns = self._ns_prev + d
+        self._ns_prev = ns
+        return ns
+
+    def _continuity(self, state: TickState, ns: float) -> tuple[Interval, bool]:
+        """The continuity interval around ``ns`` (unwrapped); recomputed when the
+        tool has moved, at most every ``interval_period`` ticks."""
+        self._interval_age += 1
+        fresh = self._interval is not None and (
+            self._interval_age < self.config.interval_period or not self._tool_moved(state))
+        stale = False
+        if not fresh:
+            try:
+                self._interval = continuity_interval(self.robot, state.q)
+                self._interval_pose = (state.tool_position, state.tool_rotation)
+                self._interval_age = 0
+            except QpnsoError:
+                stale = True
+        if self._interval is None:
+            return Interval(ns - np.pi, ns + np.pi, True), True
+        return self._shift(self._interval, ns), stale
+
+    def _tool_moved(self, state: TickState, tol: float = 1e-9) -> bool:
+        """Whether the tool pose differs from the one the cached interval was computed at."""
+        p, rot = self._interval_pose
+        return bool(np.abs(state.tool_position - p).max() > tol or np.abs(state.tool_rotation - rot).max() > tol)
+
+    @staticmethod
+    def _shift(interval: Interval, ns: float) -> Interval:
+        """The arc moved by whole turns to be expressed around ``ns`` (a full circle is centred on it)."""
+        if interval.full_circle:
+            return Interval(ns - np.pi, ns + np.pi, True)
+        k = np.round((ns - 0.5 * (interval.lo + interval.hi)) / (2 * np.pi))
+        return Interval(interval.lo + 2 * np.pi * k, interval.hi + 2 * np.pi * k, False)
+
+    def _command_velocity(self, result, n_levels: int) -> tuple[np.ndarray, Status, str]:
+        """The QP's answer, or the safe fallback: level-1 solution, else zero."""
+        if result.ok:
+            status = Status.OK
+            if result.levels[-1].slack is not None and np.max(result.levels[-1].slack, initial=0.0) > 1e-6:
+                status |= Status.ELBOW_SLACK
+            return result.x, status, ""
+        fallback = result.x if result.x is not None and np.all(np.isfinite(result.x)) else None
+        if fallback is None:
+            return np.zeros(self.robot.nq), Status.QP_FAILED, f"QP failed ({result.status}): joints stopped"
+        return fallback, Status.QP_FAILED, f"QP failed ({result.status}): tool held, no null-space motion"
+
+    def _torque(self, state: TickState, dq_cmd: np.ndarray, dq_meas: np.ndarray, elbow: ElbowState) -> np.ndarray:
+        """τ = g(q) + Nᵀ τ_null with N = I − J̄J, J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ (METHOD §2, §7).
+
+        Cholesky factors (LAPACK) of A and of JA⁻¹Jᵀ (regularised by 1e-12 of its
+        trace, so a singular J gives a finite torque).
+        """
+        r = self.robot
+        tau_null = self.strategy.nullspace_torque(state, elbow, dq_cmd, dq_meas)
+        g = pin.computeGeneralizedGravity(r.model, r.data, state.q)
+        a = pin.crba(r.model, r.data, state.q)  # upper triangle filled: all dpotrf reads
+        jac = state.jacobian
+        chol_a, info = _dpotrf(a, lower=0)
+        a_inv_jt, _ = _dpotrs(chol_a, jac.T, lower=0)
+        lam_inv = jac @ a_inv_jt
+        lam_inv[_DIAG6] += 1e-12 * np.trace(lam_inv)
+        chol_l, info_l = _dpotrf(lam_inv, lower=0)
+        if info or info_l:
+            return g + tau_null  # not positive definite: no projection rather than NaN
+        f, _ = _dpotrs(chol_l, a_inv_jt.T @ tau_null, lower=0)  # J̄ᵀ τ_null = Λ (A⁻¹Jᵀ)ᵀ τ_null
+        return g + tau_null - jac.T @ f
+
+    def __repr__(self) -> str:
+        return f"Controller({self.robot.name!r}, strategy={self.config.strategy!r}, dt={self.config.dt})"
+
+
+def with_strategy(config: ControllerConfig, strategy: str) -> ControllerConfig:
+    """A copy of ``config`` using another strategy."""
+    return replace(config, strategy=strategy)

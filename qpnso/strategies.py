@@ -1,0 +1,214 @@
+"""Redundancy strategies: qpnso's QP and the papers' baselines (METHOD §7–8).
+
+A strategy says two things each tick, given the arm's state and the elbow's:
+
+* ``level2(state, elbow)``: the second level of the hierarchical QP (what the
+  arm does in the tool's null space), or None for "nothing";
+* ``nullspace_torque(state, elbow, dq_cmd, dq_meas)``: the joint torque it
+  would apply (N·m), which the controller projects into the dynamically
+  consistent null space and adds to gravity compensation.
+
+Level 1 (the tool) and the joint bounds are the controller's, the same for
+every strategy, so the strategies differ only where the papers differ.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from qpnso.errors import ConfigError, QpnsoError
+from qpnso.hqp import Level
+
+if TYPE_CHECKING:
+    from qpnso.controller import Controller, ElbowState
+    from qpnso.state import TickState
+
+
+class Strategy:
+    """Base: no level 2, null-space damping only (the damped posture, DP)."""
+
+    name = "damped"
+
+    def __init__(self, controller: "Controller") -> None:
+        self.ctrl = controller
+        self.cfg = controller.config
+        self._identity = np.eye(controller.robot.nq)
+
+    def reset(self, q0: np.ndarray, state: "TickState") -> None:
+        """Called by ``Controller.reset``."""
+
+    def level2(self, state: "TickState", elbow: "ElbowState") -> Level | None:
+        return None
+
+    def nullspace_torque(self, state: "TickState", elbow: "ElbowState", dq_cmd: np.ndarray,
+                         dq_meas: np.ndarray) -> np.ndarray:
+        """DP: τ = −D q̇ with D = ``joint_damping`` (10 N·m·s/rad in both papers)."""
+        return -self.cfg.joint_damping * dq_meas
+
+
+class Damped(Strategy):
+    """Damped posture (DP): gravity compensation and null-space damping."""
+
+
+class FixedPosture(Strategy):
+    """Fixed optimal posture (FOP): constant stiffness towards a posture ([E], [M]).
+
+    The posture is ``config.fixed_posture`` (rad) or the reset configuration.
+    Kinematically: level 2 asks ``q̇ = posture_gain·(q_ref − q)`` in the null space.
+    """
+
+    name = "fixed"
+
+    def reset(self, q0: np.ndarray, state: "TickState") -> None:
+        ref = self.cfg.fixed_posture
+        self.q_ref = q0.copy() if ref is None else self.ctrl.robot.check_q(ref, "fixed_posture")
+
+    def level2(self, state: "TickState", elbow: "ElbowState") -> Level:
+        return Level(A=self._identity, b=self.cfg.posture_gain * (self.q_ref - state.q))
+
+    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+        return self.cfg.posture_stiffness * (self.q_ref - state.q) - self.cfg.joint_damping * dq_meas
+
+
+def nullspace_part(jac: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``v − J⁺Jv``: the part of ``v`` in the null space of ``J`` (JJᵀ regularised by 1e-12 of its trace)."""
+    jjt = jac @ jac.T
+    jjt[np.diag_indices_from(jjt)] += 1e-12 * np.trace(jjt)
+    return v - jac.T @ np.linalg.solve(jjt, jac @ v)
+
+
+def arm_angle_step(state: "TickState", delta_ns: float) -> np.ndarray:
+    """Smallest joint displacement (rad) that changes the arm angle by ``delta_ns`` (first order)."""
+    g = state.arm_angle_gradient
+    return g * (delta_ns / max(float(g @ g), 1e-12))
+
+
+class ElbowUp(Strategy):
+    """Elbow up: a constant null-space posture that keeps the elbow high ([M]).
+
+    The arm angle is driven to ``elbow_up_angle_deg`` (0 = elbow up) with the FOP
+    stiffness, through the smallest joint motion that changes it.
+    """
+
+    name = "elbow-up"
+
+    def _delta(self, elbow: "ElbowState") -> float:
+        target = np.radians(self.cfg.elbow_up_angle_deg)
+        return float((target - elbow.ns + np.pi) % (2 * np.pi) - np.pi)
+
+    def level2(self, state, elbow) -> Level:
+        row = state.arm_angle_gradient.reshape(1, -1)
+        return Level(A=row, b=np.array([self.cfg.posture_gain * self._delta(elbow)]))
+
+    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+        return (self.cfg.posture_stiffness * arm_angle_step(state, self._delta(elbow))
+                - self.cfg.joint_damping * dq_meas)
+
+
+class Gradient(Strategy):
+    """The mass/friction paper's velocity-saturated null-space gradient [M 20]–[M 22].
+
+    ``ω_des = −k_p ∇c / k_d``, ``v_d = min(1, ω_max/‖ω_des‖)``,
+    ``F_p = −k_d (q̇ − v_d ω_des)``; kinematically level 2 asks ``q̇ = v_d ω_des``.
+    """
+
+    name = "gradient"
+
+    def desired_velocity(self, state: "TickState") -> np.ndarray:
+        omega = -self.cfg.gradient_kp / self.cfg.gradient_kd * state.cost_gradient
+        norm = float(np.linalg.norm(omega))
+        return omega * min(1.0, self.cfg.gradient_omega_max / norm) if norm > 0 else omega
+
+    def level2(self, state, elbow) -> Level:
+        return Level(A=self._identity, b=self.desired_velocity(state))
+
+    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+        return -self.cfg.gradient_kd * (dq_meas - self.desired_velocity(state))
+
+
+class RomModulation(Strategy):
+    """The elbow paper's set-point modulation (NSO) [E 1], [E 5], [E 6], [E 10], [E 11].
+
+    ``ns_des`` follows ``ns`` inside ROM_t and saturates at its ends; the
+    set-point ``q_des`` is the closed-form IK at ``ns_des`` (S-R-S arms) or the
+    first-order step towards it; ``τ = K(ns)(q_des − q) − D q̇``.  Inside the ROM
+    the null space is only damped, as in the paper.
+    """
+
+    name = "rom"
+
+    def _setpoint_step(self, state: "TickState", elbow: "ElbowState") -> np.ndarray | None:
+        lo, hi = elbow.rom
+        target = min(max(elbow.ns, lo), hi)
+        if target == elbow.ns:
+            return None
+        return self._ik_step(state, elbow, target)
+
+    def _ik_step(self, state, elbow, target: float) -> np.ndarray:
+        from qpnso.elbow import branch, ik
+
+        import pinocchio as pin
+
+        try:
+            pose = pin.SE3(state.tool_rotation, state.tool_position)
+            wrapped = float((target + np.pi) % (2 * np.pi) - np.pi)
+            return ik(self.ctrl.robot, pose, wrapped, branch(self.ctrl.robot, state.q)) - state.q
+        except QpnsoError:
+            return arm_angle_step(state, target - elbow.ns)
+
+    def level2(self, state, elbow) -> Level | None:
+        step = self._setpoint_step(state, elbow)
+        if step is None:
+            return None
+        return Level(A=self._identity, b=self.cfg.posture_gain * step)
+
+    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+        step = self._setpoint_step(state, elbow)
+        spring = 0.0 if step is None else elbow.stiffness * step
+        return spring - self.cfg.joint_damping * dq_meas
+
+
+class QPStrategy(Strategy):
+    """qpnso: minimise the weighted mass/friction cost in the null space, with the
+    elbow kept in ROM_t (METHOD §7, level 2).
+
+    Objective ``½‖q̇‖² + k ∇c(q)ᵀ q̇`` (the step ``−k∇c`` saturated to
+    ``nullspace_speed_max`` as in [M 21]); elbow rows
+    ``ξ(ns_lo − ns) ≤ ∇nsᵀ q̇ ≤ ξ(ns_hi − ns)`` (velocity dampers, soft with a
+    heavy slack) so an elbow outside ROM_t is brought back at rate ξ.
+    The torque is the null-space impedance ``K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)``.
+    """
+
+    name = "qp"
+
+    def level2(self, state, elbow) -> Level:
+        cfg = self.cfg
+        step = cfg.cost_gain * state.cost_gradient
+        free = nullspace_part(state.jacobian, step)  # what level 2 can actually do
+        norm = float(np.sqrt(free @ free))
+        if norm > cfg.nullspace_speed_max:
+            step *= cfg.nullspace_speed_max / norm
+        if elbow.dropped:
+            return Level(H=self._identity, g=step)
+        lo, hi = elbow.rom
+        row = state.arm_angle_gradient.reshape(1, -1)
+        l = np.array([cfg.elbow_gain * (lo - elbow.ns)])
+        u = np.array([cfg.elbow_gain * (hi - elbow.ns)])
+        return Level(H=self._identity, g=step, C=row, l=l, u=u, slack_weight=cfg.slack_weight)
+
+    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+        cfg = self.cfg
+        return elbow.stiffness * cfg.dt * dq_cmd + cfg.joint_damping * (dq_cmd - dq_meas)
+
+
+_STRATEGIES = {cls.name: cls for cls in (Damped, FixedPosture, ElbowUp, Gradient, RomModulation, QPStrategy)}
+
+
+def make_strategy(name: str, controller: "Controller") -> Strategy:
+    """The strategy called ``name`` (``qp``, ``damped``, ``fixed``, ``elbow-up``, ``gradient``, ``rom``)."""
+    try:
+        return _STRATEGIES[name](controller)
+    except KeyError:
+        raise ConfigError(f"unknown strategy {name!r}; choose one of {sorted(_STRATEGIES)}") from None

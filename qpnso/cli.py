@@ -108,6 +108,210 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------- intervals
+def cmd_intervals(args: argparse.Namespace) -> int:
+    """Plot every joint versus the arm angle for the tool pose of q (PNG)."""
+    from qpnso.intervals import continuity_interval
+    from qpnso.plots import plot_intervals
+    from qpnso.rom import ElbowConfig
+
+    robot = load_cli_robot(args)
+    q = robot_q(args, robot)
+    rom = ElbowConfig(half_width_deg=args.rom_half_width_deg, safety_margin_deg=args.safety_margin_deg)
+    iv = continuity_interval(robot, q)
+    path = plot_intervals(robot, q, rom=rom, out=args.out)
+    span = "full circle" if iv.full_circle else f"[{np.degrees(iv.lo):.2f}, {np.degrees(iv.hi):.2f}] deg"
+    print(f"continuity interval {span} ({iv.method}); figure written to {path}")
+    return 0
+
+
+# ---------------------------------------------------------------- trajectory
+def parse_targets(text: str) -> np.ndarray:
+    """``x,y,z;x,y,z;...`` in metres."""
+    rows = [parse_vector(part, 3, "--targets point") for part in text.split(";") if part.strip()]
+    if len(rows) < 2:
+        raise argparse.ArgumentTypeError("--targets needs at least two points x,y,z;x,y,z (m)")
+    return np.array(rows)
+
+
+def cmd_trajectory(args: argparse.Namespace) -> int:
+    """Generate a tool trajectory CSV (t,x,y,z,qx,qy,qz,qw)."""
+    import pinocchio as pin
+
+    from qpnso import trajectory as tr
+
+    center = parse_vector(args.center, 3, "--center")
+    rot = pin.rpy.rpyToMatrix(*np.radians(parse_vector(args.rpy_deg, 3, "--rpy-deg")))
+    pose = pin.SE3(rot, center)
+    if args.kind == "guidance":
+        traj = tr.guidance_path(pose, size=args.size, speed=args.speed, dt=args.dt)
+    elif args.kind == "point-to-point":
+        targets = parse_targets(args.targets) if args.targets else center + np.array(
+            [[0, 0, 0], [0.08, 0, 0], [0.08, 0.08, 0], [0, 0.08, 0], [-0.08, 0, 0], [0, -0.08, 0]])
+        traj = tr.point_to_point(targets, peak_speed=args.speed, orientation=rot, dt=args.dt)
+    else:
+        traj = tr.hold(pose, args.duration, dt=args.dt)
+    tr.write_csv(traj, args.out)
+    print(f"{args.kind}: {len(traj)} samples, {traj.duration:.2f} s, written to {args.out}")
+    return 0
+
+
+# --------------------------------------------------------------------- solve
+def progress_bar(enabled: bool, desc: str):  # type: ignore[no-untyped-def]
+    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr, or None."""
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    state: dict = {}
+
+    def update(done: int, total: int) -> None:
+        bar = state.get("bar")
+        if bar is None:
+            bar = state["bar"] = tqdm(total=total, desc=desc, unit="tick", leave=False, mininterval=0.5)
+        if done % 100 == 0 or done == total:
+            bar.update(done - bar.n)
+        if done == total:
+            bar.close()
+
+    return update
+
+
+def print_summary(summary: dict, title: str) -> None:
+    print(f"{title}")
+    width = max(len(k) for k in summary) if summary else 10
+    for key, value in summary.items():
+        print(f"  {key:<{width}}  {value:.6g}" if isinstance(value, float) else f"  {key:<{width}}  {value}")
+
+
+def write_json(path: str, data: dict) -> None:
+    import json
+    from pathlib import Path
+
+    from qpnso.solve import atomic_write
+
+    text = json.dumps(data, indent=2, sort_keys=True).encode()
+    atomic_write(Path(path), lambda f: f.write(text))
+
+
+def controller_overrides(args: argparse.Namespace) -> dict:
+    """CLI flags that override the config file (None: not given)."""
+    return {"strategy": getattr(args, "strategy", None), "dt": getattr(args, "dt", None)}
+
+
+def cmd_solve(args: argparse.Namespace) -> int:
+    """Offline solve of a tool trajectory, tick by tick: the main job."""
+    from qpnso.solve import load_config, solve_trajectory
+    from qpnso.trajectory import read_csv
+
+    robot = load_cli_robot(args)
+    traj = read_csv(args.trajectory)
+    cfg = load_config(args.config, controller_overrides(args))
+    q0 = None
+    if args.q0 is not None:
+        q0 = robot.check_q(parse_vector(args.q0, robot.nq, "--q0"), "--q0")
+    result = solve_trajectory(robot, traj, q0=q0, config=cfg, progress=progress_bar(not args.quiet, "solve"))
+    result.save(args.out)
+    if args.summary:
+        write_json(args.summary, {"robot": robot.name, "strategy": cfg.strategy, "trajectory": str(args.trajectory),
+                                  **result.summary})
+    print_summary(result.summary, f"{robot.name}, strategy {cfg.strategy}, {args.trajectory} -> {args.out}")
+    for message in result.messages[:10]:
+        print(f"  note: {message}")
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Hands-on guidance simulation of a scenario with one strategy."""
+    from pathlib import Path
+
+    from qpnso.controller import Controller
+    from qpnso.plots import plot_run
+    from qpnso.robot import load_robot
+    from qpnso.scenarios import load_scenario
+    from qpnso.simulation import simulate
+    from qpnso.solve import load_config
+
+    sc = load_scenario(args.scenario)
+    robot = load_robot(sc.robot)
+    cfg = load_config(args.config, {**sc.controller, **controller_overrides(args)})
+    path = sc.path()
+    if args.duration_scale < 1.0:
+        path = path.window(path.t[0], path.t[0] + args.duration_scale * path.duration)
+    result = simulate(Controller(robot, cfg), path, sc.start(robot), progress=progress_bar(not args.quiet, "simulate"))
+    out = Path(args.out)
+    result.save(out / "result.npz")
+    write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": cfg.strategy, **result.summary})
+    if not args.no_plot:
+        plot_run(result.arrays, out / "run.png", title=f"scenario {sc.name}, strategy {cfg.strategy}")
+    print_summary(result.summary, f"scenario {sc.name} ({sc.description}), strategy {cfg.strategy} -> {out}")
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Plot a result.npz (arm angle, ROM_t, bounds, stiffness, felt mass/friction, tool path)."""
+    from qpnso.errors import InputError
+    from qpnso.plots import plot_run
+
+    try:
+        with np.load(args.result) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read {args.result}: {exc}") from None
+    missing = [k for k in ("t", "ns", "rom_lo", "rom_hi", "interval_lo", "interval_hi", "stiffness", "mass",
+                           "friction_force", "tool_position") if k not in arrays]
+    if missing:
+        raise InputError(f"{args.result} lacks {missing}: not a qpnso result file")
+    print(f"figure written to {plot_run(arrays, args.out, title=str(args.result))}")
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Several strategies on one scenario: one table (Markdown) and one figure."""
+    from pathlib import Path
+
+    from qpnso.controller import STRATEGIES
+    from qpnso.errors import ConfigError
+    from qpnso.plots import plot_comparison
+    from qpnso.scenarios import load_scenario, simulate_scenario
+    from qpnso.metrics import summarize_run
+
+    strategies = [x.strip() for x in args.strategies.split(",") if x.strip()]
+    unknown = [x for x in strategies if x not in STRATEGIES]
+    if unknown:
+        raise ConfigError(f"unknown strategy {unknown}; choose from {STRATEGIES}")
+    sc = load_scenario(args.scenario)
+    runs, rows = {}, []
+    for name in strategies:
+        arrays = simulate_scenario(args.scenario, name, args.duration_scale, progress_bar(not args.quiet, name))
+        m = summarize_run(arrays)
+        runs[name] = arrays
+        rows.append((name, m))
+    out = Path(args.out)
+    table = comparison_table(rows, sc)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "comparison.md").write_text(table + "\n")
+    plot_comparison(runs, out / "comparison.png", title=f"scenario {sc.name}: {sc.description}")
+    print(table)
+    return 0
+
+
+def comparison_table(rows: list, sc) -> str:  # type: ignore[no-untyped-def]
+    margin = sc.controller.get("safety_margin_deg", 10.0)
+    lines = [f"scenario {sc.name} ({sc.description}), safety margin {margin:g} deg", "",
+             "| strategy | Δ elbow mobility (deg) | Δc proximity (deg) | Δc ≥ margin | S smoothness | "
+             "tool error max (mm) | work per metre (N) | tick median (µs) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, m in rows:
+        lines.append(
+            f"| {name} | {m.get('elbow_mobility_deg', float('nan')):.1f} | "
+            f"{m.get('constraint_proximity_deg', float('nan')):.1f} | "
+            f"{'yes' if m.get('constraint_proximity_deg', -1) >= margin else 'no'} | "
+            f"{m.get('smoothness', float('nan')):.0f} | {1000 * m.get('tool_position_error_max_m', float('nan')):.2f} | "
+            f"{m.get('user_work_per_metre_N', float('nan')):.2f} | {m.get('tick_time_median_us', float('nan')):.0f} |")
+    return "\n".join(lines)
+
+
 # --------------------------------------------------------------------- bench
 def cmd_bench(args: argparse.Namespace) -> int:
     """Time the cost or the control tick; print a Markdown table of medians and p99."""
@@ -134,6 +338,62 @@ def build_parser() -> argparse.ArgumentParser:
     add_robot_arguments(p, positional=True)
     add_q_arguments(p)
     p.set_defaults(handler=cmd_info)
+
+    p = sub.add_parser("intervals", help="plot joints vs arm angle with limits, feasible arcs, ROM (PNG)")
+    add_robot_arguments(p, positional=True)
+    add_q_arguments(p)
+    p.add_argument("--rom-half-width-deg", type=float, default=50.0, help="ROM half width, degrees (default 50)")
+    p.add_argument("--safety-margin-deg", type=float, default=10.0, help="safety margin, degrees (default 10)")
+    p.add_argument("--out", default="intervals.png", help="PNG file to write")
+    p.set_defaults(handler=cmd_intervals)
+
+    p = sub.add_parser("trajectory", help="generate a tool trajectory CSV (t,x,y,z,qx,qy,qz,qw)")
+    p.add_argument("kind", choices=["guidance", "point-to-point", "hold"])
+    p.add_argument("--center", default="0.5,0,0.45", help="path centre / start, x,y,z in metres (world)")
+    p.add_argument("--rpy-deg", default="180,0,0", help="tool orientation roll,pitch,yaw in DEGREES")
+    p.add_argument("--size", type=float, default=0.08, help="guidance: lemniscate width, m")
+    p.add_argument("--speed", type=float, default=0.05, help="peak tool speed, m/s")
+    p.add_argument("--targets", default=None, help="point-to-point: x,y,z;x,y,z;... in metres")
+    p.add_argument("--duration", type=float, default=2.0, help="hold: seconds")
+    p.add_argument("--dt", type=float, default=0.01, help="sample period, s")
+    p.add_argument("--out", required=True, help="CSV file to write")
+    p.set_defaults(handler=cmd_trajectory)
+
+    p = sub.add_parser("solve", help="solve a tool trajectory tick by tick (the main job)")
+    p.add_argument("trajectory", help="CSV with header t,x,y,z,qx,qy,qz,qw (s, m, unit quaternion)")
+    add_robot_arguments(p)
+    p.add_argument("--q0", default=None, help="start configuration in RADIANS, comma-separated "
+                   "(default: found for the first pose, elbow up)")
+    p.add_argument("--strategy", default=None, help="qp (default), damped, fixed, elbow-up, gradient, rom")
+    p.add_argument("--config", default=None, help="TOML file of controller settings (flags override it)")
+    p.add_argument("--dt", type=float, default=None, help="tick length, s (default 0.001)")
+    p.add_argument("--out", default="result.npz", help="per-tick arrays (NumPy .npz)")
+    p.add_argument("--summary", default=None, help="also write the summary as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=cmd_solve)
+
+    p = sub.add_parser("simulate", help="hands-on guidance simulation of scenario A or B")
+    p.add_argument("--scenario", default="A", help="A, B or a scenario .toml file")
+    p.add_argument("--strategy", default=None, help="strategy (default qp)")
+    p.add_argument("--config", default=None, help="TOML file of controller settings")
+    p.add_argument("--duration-scale", type=float, default=1.0, help="run only this fraction of the path")
+    p.add_argument("--out", required=True, help="folder for result.npz, summary.json, run.png")
+    p.add_argument("--no-plot", action="store_true")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(handler=cmd_simulate, dt=None)
+
+    p = sub.add_parser("plot", help="plot a result.npz (PNG)")
+    p.add_argument("result")
+    p.add_argument("--out", default="run.png")
+    p.set_defaults(handler=cmd_plot)
+
+    p = sub.add_parser("compare", help="several strategies on one scenario: table and figure")
+    p.add_argument("--scenario", default="B")
+    p.add_argument("--strategies", default="qp,damped,fixed,rom,gradient")
+    p.add_argument("--duration-scale", type=float, default=1.0)
+    p.add_argument("--out", required=True, help="folder for comparison.md and comparison.png")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(handler=cmd_compare)
 
     p = sub.add_parser("bench", help="time the cost evaluation or the control tick (median, p99)")
     p.add_argument("what", choices=["cost", "tick"])

@@ -93,3 +93,83 @@ def plot_intervals(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _save(fig, out: str | Path) -> Path:  # type: ignore[no-untyped-def]
+    """Write a figure atomically (temporary file, then rename) and close it."""
+    from qpnso.solve import atomic_write
+
+    path = Path(out)
+    atomic_write(path, lambda f: fig.savefig(f, dpi=110, format="png"))
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return path
+
+
+def _run_panels(axes, arrays, label: str = "", color: str | None = None, bounds: bool = True) -> None:  # type: ignore[no-untyped-def]
+    """Arm angle with ROM_t and interval, stiffness, felt mass and friction over time."""
+    t = np.asarray(arrays["t"])
+    deg = np.degrees
+    ax = axes[0]
+    ax.plot(t, deg(arrays["ns"]), color=color or "black", lw=1.2, label=f"ns {label}".strip())
+    if bounds:
+        ax.plot(t, deg(arrays["rom_lo"]), color="tab:blue", ls=":", lw=1.0, label="ROM_t")
+        ax.plot(t, deg(arrays["rom_hi"]), color="tab:blue", ls=":", lw=1.0)
+        ax.plot(t, deg(arrays["interval_lo"]), color="tab:red", lw=1.0, label="continuity interval")
+        ax.plot(t, deg(arrays["interval_hi"]), color="tab:red", lw=1.0)
+    ax.set_ylabel("arm angle (deg)")
+    axes[1].plot(t, arrays["stiffness"], color=color or "tab:purple", lw=1.0, label=label or None)
+    axes[1].set_ylabel("K (N·m/rad)")
+    for ax, key, unit in ((axes[2], "mass", "kg"), (axes[3], "friction_force", "N")):
+        v = np.asarray(arrays[key], dtype=float)
+        ok = np.isfinite(v)
+        ax.plot(t[ok], v[ok], color=color or "tab:green", lw=1.0, label=label or None)
+        ax.set_ylabel(f"{key.replace('_', ' ')} ({unit})")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+
+
+def plot_run(arrays, out: str | Path = "run.png", title: str = "") -> Path:  # type: ignore[no-untyped-def]
+    """A run over time (like the elbow paper's Fig. 3): the arm angle with ROM_t
+    and the continuity bounds, the elbow stiffness, the felt mass and friction
+    force, and the 3-D tool path (reference dashed).  Writes a PNG."""
+    plt = _pyplot()
+    fig = plt.figure(figsize=(11, 8))
+    grid = fig.add_gridspec(4, 2, width_ratios=[1.6, 1])
+    axes = [fig.add_subplot(grid[k, 0]) for k in range(4)]
+    _run_panels(axes, arrays)
+    axes[0].legend(fontsize=7, loc="best")
+    axes[-1].set_xlabel("t (s)")
+    ax3 = fig.add_subplot(grid[:, 1], projection="3d")
+    p = np.asarray(arrays["tool_position"])
+    ax3.plot(p[:, 0], p[:, 1], p[:, 2], color="black", lw=1.0, label="tool")
+    if "ref_position" in arrays:
+        r = np.asarray(arrays["ref_position"])
+        ax3.plot(r[:, 0], r[:, 1], r[:, 2], color="tab:orange", ls="--", lw=0.8, label="reference")
+    ax3.set_xlabel("x (m)")
+    ax3.set_ylabel("y (m)")
+    ax3.set_zlabel("z (m)")
+    ax3.legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+def plot_comparison(runs: dict, out: str | Path = "comparison.png", title: str = "") -> Path:  # type: ignore[no-untyped-def]
+    """Several runs (name → arrays) side by side: one column per run, same panels."""
+    plt = _pyplot()
+    if not runs:
+        raise InputError("plot_comparison needs at least one run")
+    fig, axes = plt.subplots(4, len(runs), figsize=(4 * len(runs) + 1, 8), sharex="col", sharey="row",
+                             squeeze=False)
+    for col, (name, arrays) in enumerate(runs.items()):
+        _run_panels(axes[:, col], arrays)
+        axes[0, col].set_title(name, fontsize=10)
+        axes[-1, col].set_xlabel("t (s)")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, out)

@@ -133,6 +133,13 @@ class Trajectory:
         r = self._rotation[k] @ pin.exp3(s * self._rotvec[k])
         return p, r, v, self._omega[k].copy()
 
+    def window(self, t_start: float, t_end: float) -> "Trajectory":
+        """The samples with ``t_start <= t <= t_end`` (s), as a new trajectory."""
+        keep = (self.t >= t_start) & (self.t <= t_end)
+        if np.count_nonzero(keep) < 2:
+            raise TrajectoryError(f"window [{t_start}, {t_end}] s holds fewer than 2 samples")
+        return Trajectory(self.t[keep], self.position[keep], self.quaternion[keep])
+
     def pose(self, t: float) -> pin.SE3:
         """The tool pose at ``t`` (s) as a ``pinocchio.SE3`` (world frame)."""
         p, r, _, _ = self.sample(t)

@@ -1,0 +1,111 @@
+"""Offline solve and hands-on simulation end to end, and their error paths."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+import qpnso
+from qpnso import trajectory as tr
+from qpnso.scenarios import load_scenario, simulate_scenario
+from qpnso.solve import RESULT_KEYS, initial_configuration, load_config, solve_trajectory
+
+POSE = pin.SE3(pin.rpy.rpyToMatrix(np.pi, np.radians(30), np.pi), np.array([0.65, 0.0, 0.5]))
+
+
+@pytest.fixture(scope="module")
+def short_guidance() -> tr.Trajectory:
+    path = tr.guidance_path(POSE, size=0.06, speed=0.05)
+    return path.window(path.t[0], path.t[0] + 1.5)
+
+
+def test_initial_configuration_reaches_the_pose_with_the_elbow_up(lwr) -> None:
+    q = initial_configuration(lwr, POSE)
+    reached = lwr.tool_pose(q)
+    assert np.linalg.norm(reached.translation - POSE.translation) < 1e-9
+    assert np.linalg.norm(pin.log3(reached.rotation @ POSE.rotation.T)) < 1e-9
+    assert abs(qpnso.arm_angle(lwr, q)) < 1e-9
+    assert np.all(q > lwr.q_min) and np.all(q < lwr.q_max)
+
+
+def test_solve_tracks_the_path_and_records_every_key(lwr, short_guidance) -> None:
+    result = solve_trajectory(lwr, short_guidance)
+    a = result.arrays
+    assert set(RESULT_KEYS) <= set(a)
+    n = len(a["t"])
+    assert n == int(round(short_guidance.duration / 1e-3)) + 1
+    # level 1 tracks the reference: errors measured with Pinocchio FK at every tick
+    fk = np.array([lwr.tool_pose(q).translation for q in a["q"]])
+    ref = np.array([short_guidance.sample(t)[0] for t in a["t"]])
+    assert np.abs(fk - ref).max() < 1e-5
+    assert result.summary["tool_position_error_max_m"] < 1e-5
+    assert np.all(a["q"] >= lwr.q_min) and np.all(a["q"] <= lwr.q_max)
+    assert result.summary["mass_mean_kg"] > 0 and result.summary["friction_force_mean_N"] > 0
+
+
+def test_solve_result_file_is_written_atomically(lwr, short_guidance, tmp_path) -> None:
+    result = solve_trajectory(lwr, short_guidance.window(0, 0.1))
+    path = result.save(tmp_path / "r.npz")
+    with np.load(path) as data:
+        assert set(RESULT_KEYS) <= set(data.files)
+    assert [p.name for p in tmp_path.iterdir()] == ["r.npz"]
+
+
+def test_q0_far_from_the_first_pose_is_refused(lwr, short_guidance) -> None:
+    with pytest.raises(qpnso.UnreachableError, match="mm from the trajectory"):
+        solve_trajectory(lwr, short_guidance, q0=np.zeros(7) + 0.3)
+
+
+def test_unreachable_first_pose(lwr) -> None:
+    far = tr.hold(pin.SE3(np.eye(3), np.array([2.0, 0, 0.5])), 0.1)
+    with pytest.raises(qpnso.UnreachableError):
+        solve_trajectory(lwr, far)
+
+
+def test_config_file_and_overrides(tmp_path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[controller]\nstrategy = "rom"\nrom_half_width_deg = 20\n[controller.weights]\nmass = 0.2\n')
+    c = load_config(cfg, {"strategy": "fixed", "dt": None})
+    assert c.strategy == "fixed" and c.rom_half_width_deg == 20 and c.weights.mass == 0.2
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[controller]\nrom_width = 3\n")
+    with pytest.raises(qpnso.ConfigError, match="rom_width"):
+        load_config(bad)
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[controller\n")
+    with pytest.raises(qpnso.ConfigError, match="not valid TOML"):
+        load_config(broken)
+
+
+@pytest.mark.parametrize("name", ["A", "B"])
+def test_scenarios_start_as_described(name) -> None:
+    sc = load_scenario(name)
+    robot = qpnso.load_robot(sc.robot)
+    q0 = sc.start(robot)
+    assert np.isclose(np.degrees(qpnso.arm_angle(robot, q0)), sc.ns0_deg, atol=1e-6)
+    iv = qpnso.continuity_interval(robot, q0)
+    ns = qpnso.arm_angle(robot, q0)
+    room = np.degrees(min(ns - iv.lo, iv.hi - ns))
+    if name == "A":
+        assert room > 90  # far from the limits
+    else:
+        assert 10 < room < 30  # close to a limit, but outside the safety margin
+
+
+def test_unknown_scenario() -> None:
+    with pytest.raises(qpnso.ConfigError, match="unknown scenario 'C'"):
+        load_scenario("C")
+
+
+def test_simulation_keeps_the_elbow_in_rom_and_tracks_the_hand() -> None:
+    """Scenario B, 2 s of hands-on guidance with the QP strategy."""
+    arrays = simulate_scenario("B", "qp", duration_scale=2.0 / 36.0)
+    ns, lo, hi = arrays["ns"], arrays["rom_lo"], arrays["rom_hi"]
+    assert np.all(ns >= lo - np.radians(0.5)) and np.all(ns <= hi + np.radians(0.5))
+    margin = np.radians(10)
+    assert np.all(ns - arrays["interval_lo"] >= margin - np.radians(0.5))
+    assert np.all(arrays["interval_hi"] - ns >= margin - np.radians(0.5))
+    err = np.linalg.norm(arrays["tool_position"] - arrays["ref_position"], axis=1)
+    assert err.max() < 0.03  # the hand is a spring: it lags by millimetres to centimetres
+    assert np.all(np.isfinite(arrays["q"]))

@@ -163,7 +163,7 @@ class Command:
     dq: np.ndarray  # joint velocity command, rad/s
     q_des: np.ndarray  # joint set-point q + dt·dq, rad
     tau: np.ndarray  # torque command: g(q) + Nᵀ τ_null, N·m
-    stiffness: float  # null-space stiffness K(ns) [E 6], N·m/rad
+    stiffness: float  # null-space stiffness the strategy applies (K(ns) [E 6] for qp/rom), N·m/rad
     arm_angle: float  # ns, rad, unwrapped along the run
     rom: tuple[float, float]  # ROM_t [E 10], [E 11], rad (same unwrapping)
     interval: tuple[float, float]  # continuity interval [E 9], rad
@@ -266,7 +266,7 @@ class Controller:
         self._dq_prev = dq_cmd
         self.step_count += 1
         return Command(
-            dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=elbow.stiffness,
+            dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
             arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost, status=status,
             solve_time=result.solve_time, tick_time=time.perf_counter() - t0,
             tool_error=(_norm(error[:3]), _norm(error[3:])), message=message,

@@ -42,6 +42,10 @@ class Strategy:
     def level2(self, state: "TickState", elbow: "ElbowState") -> Level | None:
         return None
 
+    def stiffness(self, elbow: "ElbowState") -> float:
+        """The null-space stiffness this strategy applies (N·m/rad): none for DP."""
+        return 0.0
+
     def nullspace_torque(self, state: "TickState", elbow: "ElbowState", dq_cmd: np.ndarray,
                          dq_meas: np.ndarray) -> np.ndarray:
         """DP: τ = −D q̇ with D = ``joint_damping`` (10 N·m·s/rad in both papers)."""
@@ -60,6 +64,9 @@ class FixedPosture(Strategy):
     """
 
     name = "fixed"
+
+    def stiffness(self, elbow) -> float:
+        return self.cfg.posture_stiffness
 
     def reset(self, q0: np.ndarray, state: "TickState") -> None:
         ref = self.cfg.fixed_posture
@@ -93,6 +100,9 @@ class ElbowUp(Strategy):
     """
 
     name = "elbow-up"
+
+    def stiffness(self, elbow) -> float:
+        return self.cfg.posture_stiffness
 
     def _delta(self, elbow: "ElbowState") -> float:
         target = np.radians(self.cfg.elbow_up_angle_deg)
@@ -139,6 +149,9 @@ class RomModulation(Strategy):
 
     name = "rom"
 
+    def stiffness(self, elbow) -> float:
+        return elbow.stiffness
+
     def _setpoint_step(self, state: "TickState", elbow: "ElbowState") -> np.ndarray | None:
         lo, hi = elbow.rom
         target = min(max(elbow.ns, lo), hi)
@@ -182,6 +195,9 @@ class QPStrategy(Strategy):
     """
 
     name = "qp"
+
+    def stiffness(self, elbow) -> float:
+        return elbow.stiffness
 
     def level2(self, state, elbow) -> Level:
         cfg = self.cfg

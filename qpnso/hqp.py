@@ -70,6 +70,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import math
 import time
 from dataclasses import dataclass, field, replace
 from typing import Sequence
@@ -159,7 +160,7 @@ class Level:
     name: str = ""
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class _LevelData:
     """A validated level: float arrays, weights folded into the task."""
 
@@ -180,18 +181,21 @@ class _LevelData:
 
 
 def _array(value: object, name: str, ndim: int, allow_inf: bool = False) -> np.ndarray:
-    """``value`` as a float array of ``ndim`` dimensions without NaN (and without inf unless allowed)."""
+    """``value`` as a float array of ``ndim`` dimensions without NaN/inf; ``allow_inf``: an interval
+    side, checked (NaN included) by :func:`_check_interval`, which must follow."""
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"{name} must be a numeric array, got {type(value).__name__}") from None
     if arr.ndim != ndim:
         raise InputError(f"{name} must be {ndim}-D, got shape {arr.shape}")
-    total = float(arr.sum())  # one reduction: finite sum <=> no NaN/inf (overflow → detailed check)
+    if allow_inf:
+        return arr
+    total = float(np.add.reduce(arr, axis=None))  # one reduction: finite sum <=> no NaN/inf (overflow → detailed check)
     if total - total != 0.0:
         if np.isnan(arr).any():
             raise InputError(f"{name} contains NaN")
-        if not allow_inf and np.isinf(arr).any():
+        if np.isinf(arr).any():
             raise InputError(f"{name} contains inf")
     return arr
 
@@ -202,7 +206,10 @@ def _check_shape(arr: np.ndarray, shape: tuple, name: str) -> None:
 
 
 def _check_interval(lo: np.ndarray, hi: np.ndarray, lo_name: str, hi_name: str) -> None:
-    if not ((lo <= hi).all() and lo.max(initial=-np.inf) < np.inf and hi.min(initial=np.inf) > -np.inf):
+    if not (hi - lo >= 0.0).all():  # False for NaN, lo > hi, and lo = hi = ±inf (a side on the wrong side)
+        for arr, name in ((lo, lo_name), (hi, hi_name)):
+            if np.isnan(arr).any():
+                raise InputError(f"{name} contains NaN")
         bad = ~(lo <= hi) | np.isposinf(lo) | np.isneginf(hi)
         i = int(np.argmax(bad))
         raise InputError(f"{lo_name}[{i}] = {lo[i]!r} > {hi_name}[{i}] = {hi[i]!r}, or an infinite bound "
@@ -263,6 +270,26 @@ def _validate_level(level: Level, n: int, name: str) -> _LevelData:
     return _LevelData(A, b, Aw, bw, H, g, C, l, u, rho)
 
 
+def _trusted_level(level: Level) -> _LevelData:
+    """A level taken as given (``solve(check=False)``): float arrays of the right shapes
+    assumed, only the weight folded in and ``H`` symmetrised, as in :func:`_validate_level`."""
+    f = np.asarray
+    A = None if level.A is None else f(level.A, dtype=float)
+    b = None if level.b is None else f(level.b, dtype=float)
+    Aw, bw = A, b
+    if A is not None and not (isinstance(level.weight, (int, float)) and level.weight == 1):
+        sw = np.sqrt(f(level.weight, dtype=float))
+        Aw, bw = (sw * A.T).T if sw.ndim else sw * A, sw * b
+    H = None if level.H is None else f(level.H, dtype=float)
+    if H is not None:
+        H = 0.5 * (H + H.T)
+    C = None if level.C is None else f(level.C, dtype=float)
+    rho = None if C is None or level.slack_weight is None else float(level.slack_weight)
+    return _LevelData(A, b, Aw, bw, H, None if level.g is None else f(level.g, dtype=float), C,
+                      None if C is None else f(level.l, dtype=float),
+                      None if C is None else f(level.u, dtype=float), rho)
+
+
 def _validate_bounds(lb: object, ub: object, n: int) -> tuple[np.ndarray, np.ndarray]:
     lo = np.full(n, -np.inf) if lb is None else _array(lb, "lb", 1, allow_inf=True)
     hi = np.full(n, np.inf) if ub is None else _array(ub, "ub", 1, allow_inf=True)
@@ -273,74 +300,6 @@ def _validate_bounds(lb: object, ub: object, n: int) -> tuple[np.ndarray, np.nda
 
 
 # ------------------------------------------------------------------ cascade
-@dataclass(frozen=True)
-class Cascade:
-    """What the higher levels leave to the next one.
-
-    ``x`` (n,) their solution (rad/s); ``N`` (n, n) the projector onto the
-    directions they leave free;
-    ``lb``/``ub`` the bounds and ``C``/``l``/``u`` the inherited rows, widened
-    to contain ``x`` (see module docstring).
-    """
-
-    x: np.ndarray
-    N: np.ndarray
-    lb: np.ndarray
-    ub: np.ndarray
-    C: np.ndarray
-    l: np.ndarray
-    u: np.ndarray
-    depth: int = 0  # number of levels already solved
-
-    @classmethod
-    def start(cls, lb: np.ndarray, ub: np.ndarray) -> "Cascade":
-        n = lb.shape[0]
-        return cls(np.zeros(n), np.eye(n), lb, ub, np.zeros((0, n)), np.zeros(0), np.zeros(0))
-
-
-@dataclass(frozen=True)
-class LevelQP:
-    """The QP of one level in ``v = [d; σ]`` (n + n_slack), ``d = x − x_prev`` (rad/s):
-
-    ``min ½ vᵀ H v + gᵀ v``  s.t.  ``E v = 0`` (d stays in the free directions),
-    ``l ≤ C v ≤ u`` (inherited and own rows), ``box_l ≤ v ≤ box_u`` (the bounds on
-    d; ∓inf on σ).  ``E`` is the projector form ``[I − N, 0]`` (n rows, rank k,
-    fixed shape for a persistent solver; 0 rows on the first level); see
-    :meth:`nullspace_rows` for the equivalent form without it.  The scaled slack ``σ = √(2ρ)·s`` has unit curvature.
-    ``x_of(v) = x_prev + N d`` keeps the null-space form exact even if a solver
-    meets ``E v = 0`` only to its tolerance.  ``owned`` (n, r): the task
-    directions this level takes from the null space.
-    """
-
-    H: np.ndarray
-    g: np.ndarray
-    E: np.ndarray
-    C: np.ndarray
-    l: np.ndarray
-    u: np.ndarray
-    box_l: np.ndarray
-    box_u: np.ndarray
-    x_prev: np.ndarray
-    N: np.ndarray
-    owned: np.ndarray
-    n_slack: int
-
-    def x_of(self, v: np.ndarray) -> np.ndarray:
-        """Joint velocity (rad/s) of a QP solution ``v``."""
-        n = self.N.shape[0]
-        return self.x_prev + self.N @ v[:n]
-
-    def nullspace_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """All constraints as rows ``l ≤ C v ≤ u`` of the equivalent equality-free
-        z-form (``d = N z``: the box becomes rows ``N z``), for active-set solvers,
-        which handle the rank-deficient ``E v = 0`` badly.  Same ``H``, ``g``."""
-        n, nv = self.N.shape[0], self.H.shape[0]
-        box = np.zeros((n, nv))
-        box[:, :n] = self.N
-        return (np.vstack([self.C, box]), np.concatenate([self.l, self.box_l[:n]]),
-                np.concatenate([self.u, self.box_u[:n]]))
-
-
 @functools.lru_cache(maxsize=16)
 def _eye(n: int) -> np.ndarray:
     """A read-only n×n identity (cached: this is on the per-tick path)."""
@@ -349,94 +308,177 @@ def _eye(n: int) -> np.ndarray:
     return eye
 
 
+@dataclass(slots=True)
+class Cascade:
+    """What the higher levels leave to the next one.
+
+    ``x`` (n,) their solution (rad/s); ``Z`` (n, r) an orthonormal basis of the
+    directions they leave free (``full``: ``Z`` is the identity, nothing taken
+    yet); ``lb``/``ub`` the bounds and ``C``/``l``/``u`` the inherited rows,
+    widened to contain ``x`` (see module docstring).
+    """
+
+    x: np.ndarray
+    Z: np.ndarray
+    lb: np.ndarray
+    ub: np.ndarray
+    C: np.ndarray
+    l: np.ndarray
+    u: np.ndarray
+    depth: int = 0  # number of levels already solved
+    full: bool = True  # Z is the n×n identity
+
+    @property
+    def N(self) -> np.ndarray:
+        """The n×n orthogonal projector ``Z Zᵀ`` onto the free directions."""
+        return self.Z @ self.Z.T
+
+    @classmethod
+    def start(cls, lb: np.ndarray, ub: np.ndarray) -> "Cascade":
+        n = lb.shape[0]
+        return cls(np.zeros(n), _eye(n), lb, ub, np.zeros((0, n)), np.zeros(0), np.zeros(0))
+
+
+@dataclass(slots=True)
+class LevelQP:
+    """The QP of one level in ``v = [z; σ]`` (r + n_slack), ``x = x_prev + Z z`` (rad/s):
+
+    ``min ½ vᵀ H v + gᵀ v``  s.t.  ``l ≤ C v ≤ u`` and, if ``box_l`` is not None,
+    ``box_l ≤ v ≤ box_u``.  Rows of ``C``, in this order: the inherited rows, the
+    level's own rows (its soft rows get ``+ σ/√(2ρ)``; the scaled slack
+    ``σ = √(2ρ)·s`` has unit curvature), then — when ``Z`` is not the identity —
+    the bounds as the n rows ``Z z`` (``bound_rows`` of them).  When ``Z`` is the
+    identity the bounds are a box on ``z`` (∓inf on σ) instead.  No equality
+    constraints: the null-space form is exact by construction.
+    ``owned_z`` (r, k) / ``free_z`` (r, r − k): orthonormal bases, in z, of the
+    task directions the level takes and of those it leaves (``free_z`` None: the
+    level has no task, all r are free).
+    """
+
+    H: np.ndarray
+    g: np.ndarray
+    C: np.ndarray
+    l: np.ndarray
+    u: np.ndarray
+    box_l: np.ndarray | None
+    box_u: np.ndarray | None
+    x_prev: np.ndarray
+    Z: np.ndarray
+    owned_z: np.ndarray
+    free_z: np.ndarray | None
+    n_slack: int
+    slack_start: int  # first soft row of C
+    bound_rows: int  # n if the bounds are the last rows of C, else 0
+
+    @property
+    def r(self) -> int:
+        """Number of free directions (variables before the slacks)."""
+        return self.Z.shape[1]
+
+    @property
+    def owned(self) -> np.ndarray:
+        """The owned task directions in joint coordinates (n, k)."""
+        return self.Z @ self.owned_z
+
+    def d_of(self, v: np.ndarray) -> np.ndarray:
+        """``x − x_prev = Z z`` (rad/s) of a QP solution ``v``."""
+        return self.Z @ v[:self.r]
+
+    def x_of(self, v: np.ndarray) -> np.ndarray:
+        """Joint velocity (rad/s) of a QP solution ``v``."""
+        return self.x_prev + self.d_of(v)
+
+    def rows_with_box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All constraints as rows ``l ≤ C v ≤ u``: the finite box entries appended as
+        unit rows (for back ends without a native box); no box: ``C, l, u`` as they are."""
+        if self.box_l is None:
+            return self.C, self.l, self.u
+        keep = np.isfinite(self.box_l) | np.isfinite(self.box_u)
+        unit = _eye(self.H.shape[0])[keep]
+        return (np.vstack([self.C, unit]), np.concatenate([self.l, self.box_l[keep]]),
+                np.concatenate([self.u, self.box_u[keep]]))
+
+
 def _task_terms(data: _LevelData, cascade: Cascade, settings: QPSettings):
-    """Damped least squares ``‖W^½(A x − b)‖²`` in d: Hessian, gradient, owned directions (n, r)."""
-    first = cascade.depth == 0
-    At = data.Aw if first else data.Aw @ cascade.N
-    r0 = -data.bw if first else data.Aw @ cascade.x - data.bw
-    _, sigma, vt, info = _lapack.dgesdd(At, compute_uv=1, full_matrices=0)  # np.linalg.svd, less overhead
+    """Damped least squares ``‖W^½(A x − b)‖²`` in z (module docstring, [M 20]-style):
+    Hessian (r, r), gradient (r,), owned and free orthonormal bases in z."""
+    Z = cascade.Z
+    r = Z.shape[1]
+    At = data.Aw if cascade.full else data.Aw @ Z
+    r0 = -data.bw if cascade.depth == 0 else data.Aw @ cascade.x - data.bw
+    if r == 0:
+        empty = np.zeros((0, 0))
+        return empty, np.zeros(0), empty, empty
+    _, sigma, vt, info = _lapack.dgesdd(At, compute_uv=1, full_matrices=1)  # np.linalg.svd, less overhead
     if info != 0:
-        _, sigma, vt = np.linalg.svd(At, full_matrices=False)
-    keep = sigma > settings.rank_tol * max(1.0, float(sigma[0]))
-    vk = vt[keep]
-    curvature = 2.0 * np.maximum(sigma[keep] ** 2, settings.damping_threshold ** 2)
-    return (vk.T * curvature) @ vk, 2.0 * (At.T @ r0), vk.T
+        _, sigma, vt = np.linalg.svd(At, full_matrices=True)
+    threshold = settings.rank_tol * max(1.0, float(sigma[0]))
+    k = sigma.shape[0] if sigma[-1] > threshold else int(np.count_nonzero(sigma > threshold))  # sorted: a prefix
+    vk = vt[:k]
+    curvature = 2.0 * np.maximum(sigma[:k] ** 2, settings.damping_threshold ** 2)
+    return (vk.T * curvature) @ vk, 2.0 * (At.T @ r0), vk.T, vt[k:].T
 
 
 def build_level_qp(level: Level | _LevelData, cascade: Cascade, settings: QPSettings = QPSettings()) -> LevelQP:
-    """The QP of ``level`` given what higher levels left (``cascade``); pure.
+    """The QP of ``level`` in the free coordinates ``z`` (``x = x_prev + Z z``); pure.
 
-    Hessian in d: ``N(2AᵀWA + H)N`` (damped, module docstring) ``+ μ N_free +
-    (I − N)`` (the last term is zero on the feasible set and keeps H positive
-    definite); slack block ``I``.  Rows: inherited and own rows, in d.
+    Hessian: ``Zᵀ(2AᵀWA + H)Z`` (task part damped, module docstring) ``+ μ`` on
+    the free directions the task leaves; slack block ``I``.  Rows: inherited and
+    own rows in z, then the bounds ``Z z`` unless ``Z`` is the identity (box).
     """
     n = cascade.x.shape[0]
     data = level if isinstance(level, _LevelData) else _validate_level(level, n, "level")
-    N, xp, first = cascade.N, cascade.x, cascade.depth == 0
-    ns = data.n_slack
-    nv = n + ns
+    Z, xp, full, moved = cascade.Z, cascade.x, cascade.full, cascade.depth > 0
+    r, ns = Z.shape[1], data.n_slack
+    nv = r + ns
     Hv = np.zeros((nv, nv))
     gv = np.zeros(nv)
-    P, q = Hv[:n, :n], gv[:n]  # views
-    owned = np.zeros((n, 0))
+    P, q = Hv[:r, :r], gv[:r]  # views
+    owned_z, free_z = np.zeros((r, 0)), None
     if data.Aw is not None:
-        P_task, q[:], owned = _task_terms(data, cascade, settings)
+        P_task, q[:], owned_z, free_z = _task_terms(data, cascade, settings)
         P += P_task
-    linear = None  # gradient of ½xᵀHx + gᵀx at x_prev; the task's is already in range(N)
+    linear = data.H @ xp if data.H is not None and moved else None  # ∇(½xᵀHx + gᵀx) at x_prev
     if data.H is not None:
-        P += data.H if first else N @ data.H @ N
-        if not first:
-            linear = data.H @ xp
+        P += data.H if full else Z.T @ data.H @ Z
     if data.g is not None:
         linear = data.g if linear is None else linear + data.g
     if linear is not None:
-        q += linear if first else N @ linear
+        q += linear if full else Z.T @ linear
     mu = settings.regularization or 0.0  # tie-break on the directions the task leaves free
-    if first:
-        P += (mu * _eye(n) - (mu * owned) @ owned.T) if owned.shape[1] else mu * _eye(n)
-    else:
-        P += _eye(n) - (1.0 - mu) * N - (mu * owned) @ owned.T
-    Hv[:n, :n] = 0.5 * (P + P.T)
+    if mu and r:
+        P += mu * _eye(r) - (mu * owned_z) @ owned_z.T if owned_z.shape[1] else mu * _eye(r)
     if ns:
-        Hv[n:, n:] = _eye(ns)
-    # --- equality: d in range(N)
-    if first:
-        E = np.zeros((0, nv))
-    else:
-        E = np.zeros((n, nv))
-        E[:, :n] = _eye(n) - N
-    # --- rows in d: inherited + own (own soft rows get + σ/√(2ρ))
-    blocks_C, blocks_l, blocks_u = [], [], []
-    if cascade.C.shape[0]:
-        blocks_C.append(cascade.C @ N)
-        cx = cascade.C @ xp
-        blocks_l.append(cascade.l - cx)
-        blocks_u.append(cascade.u - cx)
-    if data.C is not None:
-        if first:
-            blocks_C.append(data.C)
-            blocks_l.append(data.l)
-            blocks_u.append(data.u)
-        else:
-            blocks_C.append(data.C @ N)
-            cx = data.C @ xp
-            blocks_l.append(data.l - cx)
-            blocks_u.append(data.u - cx)
-    n_in = sum(c.shape[0] for c in blocks_C)
-    Cv = np.zeros((n_in, nv))
-    if n_in:
-        Cv[:, :n] = blocks_C[0] if len(blocks_C) == 1 else np.vstack(blocks_C)
-        lo = blocks_l[0] if len(blocks_l) == 1 else np.concatenate(blocks_l)
-        hi = blocks_u[0] if len(blocks_u) == 1 else np.concatenate(blocks_u)
-    else:
-        lo = hi = np.zeros(0)
+        Hv[r:, r:] = _eye(ns)
+    # --- rows in z: inherited, own (soft last), bounds Z z
+    p_inh = cascade.C.shape[0]
+    p_own = 0 if data.C is None else data.C.shape[0]
+    nb = 0 if full else n
+    m = p_inh + p_own + nb
+    Cv = np.zeros((m, nv))
+    lo, hi = np.empty(m), np.empty(m)
+    for start, (C, l, u) in ((0, (cascade.C, cascade.l, cascade.u)), (p_inh, (data.C, data.l, data.u))):
+        p = 0 if C is None else C.shape[0]
+        if p:
+            Cv[start:start + p, :r] = C if full else C @ Z
+            cx = C @ xp if moved else 0.0
+            lo[start:start + p] = l - cx
+            hi[start:start + p] = u - cx
     if ns:
-        Cv[n_in - ns:, n:] = _eye(ns) * (1.0 / np.sqrt(2.0 * data.rho))
-        box_l = np.concatenate([cascade.lb - xp, np.full(ns, -np.inf)])
-        box_u = np.concatenate([cascade.ub - xp, np.full(ns, np.inf)])
-    else:
-        box_l, box_u = cascade.lb - xp, cascade.ub - xp
-    return LevelQP(Hv, gv, E, Cv, lo, hi, box_l, box_u, xp, N, owned, ns)
+        Cv[p_inh:p_inh + ns, r:] = _eye(ns) * (1.0 / np.sqrt(2.0 * data.rho))
+    box_l = box_u = None
+    if nb:
+        Cv[m - n:, :r] = Z
+        lo[m - n:] = cascade.lb - xp
+        hi[m - n:] = cascade.ub - xp
+    elif moved or ns:
+        box_l, box_u = np.empty(nv), np.empty(nv)
+        box_l[:n] = cascade.lb - xp
+        box_u[:n] = cascade.ub - xp
+        box_l[n:], box_u[n:] = -np.inf, np.inf
+    else:  # x_prev = 0: the bounds themselves
+        box_l, box_u = cascade.lb, cascade.ub
+    return LevelQP(Hv, gv, Cv, lo, hi, box_l, box_u, xp, Z, owned_z, free_z, ns, p_inh, nb)
 
 
 def _objective_gradient(data: _LevelData, x: np.ndarray) -> np.ndarray | None:
@@ -451,28 +493,54 @@ def _objective_gradient(data: _LevelData, x: np.ndarray) -> np.ndarray | None:
     return grad
 
 
+def _fix_signs(Z: np.ndarray) -> np.ndarray:
+    """``Z`` with each column's largest-magnitude entry positive (the SVD's sign is
+    arbitrary; a stable sign keeps the previous tick's ``z`` a good warm start)."""
+    r = Z.shape[1]
+    if r == 1:  # the usual case (7-DOF arm, 6-D task): one self-motion direction
+        return -Z if Z[int(np.abs(Z[:, 0]).argmax()), 0] < 0.0 else Z
+    flip = Z[np.abs(Z).argmax(axis=0), range(r)] < 0.0 if r else None
+    if r == 0 or not flip.any():
+        return Z
+    Z = Z.copy()
+    Z[:, flip] *= -1.0
+    return Z
+
+
 def advance_cascade(level: Level | _LevelData, cascade: Cascade, qp: LevelQP, x: np.ndarray,
                     settings: QPSettings = QPSettings()) -> Cascade:
     """The cascade after ``level`` (whose QP is ``qp``) was solved with joint velocity ``x``.
 
-    Removes from ``N`` the directions the level owns (module docstring, items
-    1–3) and passes its constraints down, widened to contain ``x``.
+    Removes from the free basis the directions the level owns (module
+    docstring, items 1–3; all r×r work in z) and passes its constraints down,
+    widened to contain ``x``.
     """
     n = x.shape[0]
     data = level if isinstance(level, _LevelData) else _validate_level(level, n, "level")
-    N = cascade.N - qp.owned @ qp.owned.T
+    Z, full = cascade.Z, cascade.full
+    B = None  # orthonormal basis, in the current coordinates, of what stays free; None = all
+    if qp.free_z is not None and qp.free_z.shape[1] < Z.shape[1]:
+        B = qp.free_z
     if data.H is not None:
-        M = N @ data.H @ N
-        eigval, eigvec = np.linalg.eigh(0.5 * (M + M.T))
-        big = eigval > settings.rank_tol * max(1.0, float(np.abs(eigval).max()))
-        N = N - eigvec[:, big] @ eigvec[:, big].T
+        M = Z.T @ data.H @ Z if full is False else data.H
+        if B is not None:
+            M = B.T @ M @ B
+        if M.shape[0]:
+            eigval, eigvec = np.linalg.eigh(0.5 * (M + M.T))
+            big = eigval > settings.rank_tol * max(1.0, float(np.abs(eigval).max()))
+            if big.any():
+                B = eigvec[:, ~big] if B is None else B @ eigvec[:, ~big]
     grad = _objective_gradient(data, x) if data.H is not None or data.g is not None else None
     if grad is not None:  # (a pure task's gradient lies in its owned range already)
-        p = N @ grad
+        p = grad if full else Z.T @ grad
+        if B is not None:
+            p = B.T @ p
         norm_p = float(np.linalg.norm(p))
-        if norm_p > settings.gradient_tol * max(1.0, float(np.linalg.norm(grad))):
-            p /= norm_p
-            N = N - np.outer(p, p)
+        if p.shape[0] and norm_p > settings.gradient_tol * max(1.0, float(np.linalg.norm(grad))):
+            Q = np.linalg.qr((p / norm_p)[:, None], mode="complete")[0][:, 1:]  # complement of p
+            B = Q if B is None else B @ Q
+    if B is not None:
+        Z, full = _fix_signs(B if full else Z @ B), False
     C, l, u = cascade.C, cascade.l, cascade.u
     if data.C is not None:
         if C.shape[0]:
@@ -481,10 +549,9 @@ def advance_cascade(level: Level | _LevelData, cascade: Cascade, qp: LevelQP, x:
             C, l, u = data.C, data.l, data.u
     tol = settings.active_tol
     if C.shape[0]:
-        cx = C @ x
-        l, u = _pass_down(l, cx, u, tol)
+        l, u = _pass_down(l, C @ x, u, tol)
     lb, ub = _pass_down(cascade.lb, x, cascade.ub, tol)
-    return Cascade(x=x, N=0.5 * (N + N.T), lb=lb, ub=ub, C=C, l=l, u=u, depth=cascade.depth + 1)
+    return Cascade(x=x, Z=Z, lb=lb, ub=ub, C=C, l=l, u=u, depth=cascade.depth + 1, full=full)
 
 
 def _pass_down(lo: np.ndarray, value: np.ndarray, hi: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -566,7 +633,7 @@ class HQPStats:
 
 
 # ------------------------------------------------------------------ backends
-@dataclass
+@dataclass(slots=True)
 class _Raw:
     v: np.ndarray | None
     status: LevelStatus
@@ -595,10 +662,11 @@ class _ProxSuiteBackend:
         self._warm = guess.WARM_START_WITH_PREVIOUS_RESULT if settings.warm_start \
             else guess.EQUALITY_CONSTRAINED_INITIAL_GUESS
         self._cold = guess.EQUALITY_CONSTRAINED_INITIAL_GUESS
+        self._messages: dict = {}  # status -> "proxsuite <name>" (formatted once)
 
-    def _create(self, nv: int, n_eq: int, n_in: int):
+    def _create(self, nv: int, n_in: int, box: bool):
         s = self._settings
-        obj = self._px.dense.QP(nv, n_eq, n_in, s.box_constraints)
+        obj = self._px.dense.QP(nv, 0, n_in, box)
         st = obj.settings
         st.eps_abs, st.eps_rel = s.eps_abs, s.eps_rel
         st.eps_primal_inf, st.eps_dual_inf = s.eps_primal_inf, s.eps_dual_inf
@@ -609,40 +677,38 @@ class _ProxSuiteBackend:
         return obj
 
     def solve(self, k: int, qp: LevelQP) -> _Raw:
-        nv, n_eq = qp.H.shape[0], qp.E.shape[0]
-        C, lo, hi = qp.C, qp.l, qp.u
-        data = {}
-        if self._settings.box_constraints:
-            data.update(l_box=qp.box_l, u_box=qp.box_u)
-        else:
-            C = np.vstack([C, _eye(nv)])
-            lo, hi = np.concatenate([lo, qp.box_l]), np.concatenate([hi, qp.box_u])
-        if n_eq:
-            data.update(A=qp.E, b=np.zeros(n_eq))
+        box = qp.box_l is not None and self._settings.box_constraints
+        C, lo, hi = (qp.C, qp.l, qp.u) if box else qp.rows_with_box()
+        data = dict(H=qp.H, g=qp.g)
         if C.shape[0]:
             data.update(C=C, l=lo, u=hi)
-        key = (k, nv, n_eq, C.shape[0])
+        if box:
+            data.update(l_box=qp.box_l, u_box=qp.box_u)
+        key = (k, qp.H.shape[0], C.shape[0], box)
         entry = self._qps.get(key)
         if entry is None:
-            obj = self._create(nv, n_eq, C.shape[0])
+            obj = self._create(qp.H.shape[0], C.shape[0], box)
             obj.settings.initial_guess = self._cold
-            obj.init(H=qp.H, g=qp.g, **data)
+            obj.init(**data)
             self._qps[key] = entry = [obj, False]
         else:
             obj = entry[0]
             obj.settings.initial_guess = self._cold if entry[1] else self._warm
-            obj.update(H=qp.H, g=qp.g, **data)
+            obj.update(**data)
         obj.solve()
         status = self._status.get(obj.results.info.status, LevelStatus.SOLVER_ERROR)
         if status is not LevelStatus.SOLVED and obj.settings.initial_guess == self._warm:
             self._stats.cold_retries += 1  # a warm start can fail where a cold one does not (measured)
             obj.settings.initial_guess = self._cold
-            obj.init(H=qp.H, g=qp.g, **data)  # same object; resets its adapted penalties too
+            obj.init(**data)  # same object; resets its adapted penalties too
             obj.solve()
             status = self._status.get(obj.results.info.status, LevelStatus.SOLVER_ERROR)
         info = obj.results.info
         entry[1] = status is not LevelStatus.SOLVED  # a failed result is a bad warm start
-        return _Raw(np.array(obj.results.x), status, int(info.iter), f"proxsuite {info.status.name}")
+        message = self._messages.get(info.status)
+        if message is None:
+            message = self._messages[info.status] = f"proxsuite {info.status.name}"
+        return _Raw(np.array(obj.results.x), status, int(info.iter), message)
 
     @property
     def qp_objects(self) -> int:
@@ -660,7 +726,7 @@ class _QpsolversBackend:
         self._options = dict(settings.solver_options)
 
     def solve(self, k: int, qp: LevelQP) -> _Raw:
-        C, lo, hi = qp.nullspace_rows()
+        C, lo, hi = qp.rows_with_box()
         up, down = np.isfinite(hi), np.isfinite(lo)
         G = np.vstack([C[up], -C[down]])
         h = np.concatenate([hi[up], -lo[down]])
@@ -690,10 +756,12 @@ def _make_backend(backend: str, settings: QPSettings, stats: HQPStats):
 class HierarchicalQP:
     """Lexicographic cascade of :class:`Level` over ``n`` joint velocities (METHOD §7).
 
-    ``backend="proxsuite"``: native dense ProxQP, one object per level created
-    at the first solve and updated/warm-started every tick; any other name is a
-    ``qpsolvers`` back end solved cold.  ``stats.qp_created`` counts ProxSuite
-    allocations (constant across ticks of fixed shapes).
+    ``backend="proxsuite"``: native dense ProxQP, one object per level and QP
+    shape (the shape changes with the number of free directions, e.g. at a
+    singularity) created at its first solve and updated/warm-started every tick;
+    any other name is a ``qpsolvers`` back end solved cold.
+    ``stats.qp_created`` counts ProxSuite allocations (constant across ticks of
+    fixed shapes).
     """
 
     def __init__(self, n: int, backend: str = NATIVE_BACKEND, settings: QPSettings | None = None) -> None:
@@ -711,24 +779,36 @@ class HierarchicalQP:
         self._backend = _make_backend(backend, self.settings, self.stats)
 
     def solve(self, levels: Sequence[Level], lb: np.ndarray | None = None,
-              ub: np.ndarray | None = None) -> HQPResult:
+              ub: np.ndarray | None = None, check: bool = True) -> HQPResult:
         """Solve the cascade under the hard bounds ``lb ≤ x ≤ ub`` (rad/s, ∓inf allowed).
 
         Raises :class:`InputError` on bad input (before solving anything);
         solver trouble is reported in the result, never raised, never NaN.
+        ``check=False`` skips the input validation (shapes, NaN, intervals) for a
+        caller that builds float arrays of the right shapes itself; the answer is
+        verified (finite, bounds, hard rows) either way.
         """
         t0 = time.perf_counter()
-        if isinstance(levels, Level) or not isinstance(levels, Sequence) or len(levels) == 0:
+        if not isinstance(levels, (list, tuple)) and (isinstance(levels, Level) or not isinstance(levels, Sequence)) \
+                or len(levels) == 0:
             raise InputError("levels must be a non-empty sequence of Level")
-        data = [_validate_level(level, self.n, f"levels[{k}]") for k, level in enumerate(levels)]
-        lo, hi = _validate_bounds(lb, ub, self.n)
+        if check:
+            data = [_validate_level(level, self.n, f"levels[{k}]") for k, level in enumerate(levels)]
+            lo, hi = _validate_bounds(lb, ub, self.n)
+        else:
+            data = [_trusted_level(level) for level in levels]
+            lo = np.full(self.n, -np.inf) if lb is None else np.asarray(lb, dtype=float)
+            hi = np.full(self.n, np.inf) if ub is None else np.asarray(ub, dtype=float)
         cascade = Cascade.start(lo, hi)
         results: list[LevelResult] = []
         x_good, failed = None, None
         for k, level in enumerate(data):
             t_level = time.perf_counter()
             qp = build_level_qp(level, cascade, self.settings)
-            raw = self._backend.solve(k, qp)
+            if qp.H.shape[0] == 0 or qp.r == 0:  # nothing left to choose: x = x_prev, slack as it falls
+                raw = _Raw(np.zeros(qp.H.shape[0]), LevelStatus.SOLVED, 0, "no free direction left")
+            else:
+                raw = self._backend.solve(k, qp)
             result = self._check(level, qp, raw)
             result.solve_time_s = time.perf_counter() - t_level
             results.append(result)
@@ -754,25 +834,34 @@ class HierarchicalQP:
         if raw.status is not LevelStatus.SOLVED:
             return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
         v = raw.v
-        if v is None or v.shape != qp.g.shape or not np.isfinite(v.sum()):
+        if v is None or v.shape != qp.g.shape or not math.isfinite(v.sum()):
             return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
                                message=f"{raw.message}: non-finite or mis-shaped solution")
-        n, ns = qp.N.shape[0], qp.n_slack
-        d = qp.N @ v[:n]  # x − x_prev, exactly in the free directions
+        r, ns = qp.r, qp.n_slack
+        z = v[:r]
         worst, slack = 0.0, None
-        if qp.l.shape[0]:
-            rows = qp.C[:, :n] @ d  # on the projected d, without the slack
-            lo, hi = qp.l, qp.u
+        if qp.box_l is None:
+            d = qp.Z @ z  # its bounds are rows of C
+        else:  # Z is the identity
+            d = z
+            worst = float(np.maximum.reduce(np.maximum(qp.box_l[:r] - d, d - qp.box_u[:r])))
+        if qp.C.shape[0]:
+            rows = qp.C[:, :r] @ z  # without the slack; the bound rows (if any) are Z z = d
+            viol = np.maximum(qp.l - rows, rows - qp.u)  # > 0 outside
             if ns:
-                slack = _violation(lo[-ns:], rows[-ns:], hi[-ns:])
-                rows, lo, hi = rows[:-ns], lo[:-ns], hi[:-ns]
-            if rows.shape[0]:
-                worst = max(float((lo - rows).max()), float((rows - hi).max()))
-        worst = max(worst, float((qp.box_l[:n] - d).max()), float((d - qp.box_u[:n]).max()))
+                soft = slice(qp.slack_start, qp.slack_start + ns)
+                slack = np.maximum(viol[soft], 0.0)
+                viol[soft] = 0.0
+            worst = max(worst, float(np.maximum.reduce(viol)))
         if not worst <= self.settings.feasibility_tol:
-            return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
+            status = LevelStatus.INFEASIBLE if r == 0 else LevelStatus.INACCURATE
+            return LevelResult(status, iterations=raw.iterations,
                                message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
         x = qp.x_prev + d
-        residual = None if level.A is None else float(np.linalg.norm(level.A @ x - level.b))
+        if level.A is None:
+            residual = None
+        else:
+            e = level.A @ x - level.b
+            residual = math.sqrt(float(e @ e))
         return LevelResult(LevelStatus.SOLVED, x=x, residual=residual, slack=slack,
                            iterations=raw.iterations, message=raw.message)

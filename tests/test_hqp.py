@@ -9,7 +9,8 @@ from hypothesis import given, settings as hsettings, strategies as st
 from scipy.optimize import linprog
 
 from qpnso.errors import InputError, SolverError
-from qpnso.hqp import HierarchicalQP, Level, LevelStatus, QPSettings, build_level_qp, Cascade
+from qpnso.hqp import (Cascade, HierarchicalQP, Level, LevelStatus, QPSettings, advance_cascade,
+                       build_level_qp)
 
 N = 7
 BACKENDS = ["proxsuite", "daqp", "quadprog"]
@@ -32,11 +33,13 @@ def _ref_level(P, q, lb, ub, eq, ineq, solver="quadprog"):
     return x
 
 
-def reference(levels: list[Level], lb, ub, solver="quadprog"):
+def reference(levels: list[Level], lb, ub, solver="quadprog", band: float = 0.0):
     """Lexicographic solution, level by level, in the *equality* form (independent of the
     null-space implementation): a higher task's A_j x is fixed to its optimal value; its
     soft rows keep their optimal slack; its hard rows stay; pure (H, g) levels keep their
-    optimal value through Lᵀx fixed (H = LLᵀ) and gᵀx fixed.  Returns x after each level."""
+    optimal value through Lᵀx fixed (H = LLᵀ) and gᵀx fixed.  Returns x after each level.
+    ``band > 0``: a task's value is kept within ±band instead of exactly (with active bounds the
+    exact equality form leaves a degenerate feasible set that the solvers reject)."""
     eq, ineq, xs = [], [], []
     for level in levels:
         ns = 0 if level.C is None or level.slack_weight is None else level.C.shape[0]
@@ -61,7 +64,9 @@ def reference(levels: list[Level], lb, ub, solver="quadprog"):
         v = _ref_level(P, q, np.r_[lb, -1e9 * np.ones(ns)], np.r_[ub, 1e9 * np.ones(ns)], eq_k, ineq_k, solver)
         x = v[:N]
         xs.append(x)
-        if level.A is not None:
+        if level.A is not None and band > 0:
+            ineq.append((level.A, level.A @ x - band, level.A @ x + band))
+        elif level.A is not None:
             eq.append((level.A, level.A @ x))
         if level.H is not None:
             w, V = np.linalg.eigh(level.H)
@@ -320,27 +325,81 @@ def test_qp_objects_created_once_per_level_and_shape():
 
 
 def test_build_level_qp_is_the_level_objective():
-    """The built QP of level 2, evaluated at z, equals the level's cost at x = x1 + N z (up to a constant)."""
+    """The built QP of level 2, evaluated at z, equals the level's cost at x = x1 + Z z (up to a constant)."""
     levels, lb, ub = random_problem(0)
     hqp = HierarchicalQP(N, settings=QPSettings(regularization=0.0))
     res = hqp.solve(levels, lb, ub)
-    from qpnso.hqp import advance_cascade
     c0 = Cascade.start(lb, ub)
     qp1 = build_level_qp(levels[0], c0)
-    assert qp1.E.shape == (0, N) and qp1.C.shape == (0, N)
+    assert qp1.C.shape == (0, N) and qp1.box_l is not None and qp1.bound_rows == 0  # bounds as a box on d
     c1 = advance_cascade(levels[0], c0, qp1, res.levels[0].x)
-    qp2 = build_level_qp(levels[1], c1)
-    assert qp2.H.shape == (N + 2, N + 2) and qp2.C.shape == (2, N + 2) and qp2.E.shape == (N, N + 2)
-    np.testing.assert_allclose(qp2.E[:, :N], np.eye(N) - c1.N, atol=1e-15)
+    assert c1.Z.shape == (N, 1)  # a full-rank 6×7 task leaves one direction
+    np.testing.assert_allclose(c1.Z.T @ c1.Z, np.eye(1), atol=1e-14)
+    np.testing.assert_allclose(levels[0].A @ c1.Z, 0, atol=1e-12)
     assert np.linalg.matrix_rank(c1.N) == 1 and np.allclose(c1.N @ c1.N, c1.N)
-    np.testing.assert_allclose(levels[0].A @ c1.N, 0, atol=1e-12)
+    qp2 = build_level_qp(levels[1], c1)
+    assert qp2.H.shape == (1 + 2, 1 + 2) and qp2.C.shape == (2 + N, 1 + 2) and qp2.box_l is None
+    np.testing.assert_allclose(qp2.C[-N:, :1], c1.Z)  # the bounds as rows Z z
+    np.testing.assert_allclose(qp2.l[-N:], lb - c1.x)
     rng = np.random.default_rng(0)
     vals = []
     for _ in range(3):
-        z = c1.N @ rng.standard_normal(N)  # inside the null space
-        v = np.r_[z, 0, 0]  # zero slack
+        v = np.r_[rng.standard_normal(1), 0, 0]  # zero slack
         vals.append(0.5 * v @ qp2.H @ v + qp2.g @ v - level_cost(levels[1], qp2.x_of(v)))
     np.testing.assert_allclose(vals, vals[0], atol=1e-9)
+
+
+def _controller_ticks(T: int, seed: int = 21):
+    """Controller-like ticks: 6×7 tool Jacobian, soft 1×7 elbow row (ρ = 1e6), tight finite joint
+    velocity bounds, level 2 in the three forms the controller uses."""
+    rng = np.random.default_rng(seed)
+    J0, dJ = rng.standard_normal((6, N)), 0.1 * rng.standard_normal((6, N))
+    v0, row = 0.4 * rng.standard_normal(6), rng.standard_normal((1, N))
+    lb, ub = -0.35 * np.ones(N), 0.3 * np.ones(N)
+    for t in range(T):
+        s = np.sin(0.3 * t)
+        J, v = J0 + s * dJ, v0 * (1 + 0.5 * s)
+        g = rng.standard_normal(N)
+        elbow = Level(H=np.eye(N), g=g, C=row, l=np.array([-0.02]), u=np.array([0.01]), slack_weight=1e6)
+        second = [elbow, Level(A=np.eye(N), b=0.2 * g), Level(A=row, b=np.array([0.05]))][t % 3 if t >= 6 else 0]
+        yield [Level(A=J, b=v), second], lb, ub
+
+
+def test_controller_problem_fast_form_matches_reference():
+    """The per-tick problem of the controller: level 2 is solved in the one-direction null-space
+    basis (fast form), warm-started, with and without input checks; answers match the
+    independent equality-form reference, the tool task's residual is preserved, bounds bind."""
+    hqp = HierarchicalQP(N, settings=QPSettings())
+    trusted = HierarchicalQP(N)
+    n_active = 0
+    for levels, lb, ub in _controller_ticks(24):
+        res = hqp.solve(levels, lb, ub)
+        assert_lexicographic(res, levels, lb, ub, _banded_reference(levels, lb, ub))
+        np.testing.assert_allclose(trusted.solve(levels, lb, ub, check=False).x, res.x, atol=1e-9)
+        n_active += int(np.any(np.isclose(res.x, lb, atol=1e-7) | np.isclose(res.x, ub, atol=1e-7)))
+        if levels[1].slack_weight is not None:
+            np.testing.assert_allclose(res.levels[1].slack, _soft_violation(levels[1], res.x), atol=1e-9)
+        c0 = Cascade.start(lb, ub)
+        c1 = advance_cascade(levels[0], c0, build_level_qp(levels[0], c0, hqp.settings), res.levels[0].x,
+                             hqp.settings)
+        assert c1.Z.shape == (N, 1)  # level 2 has one free variable (plus its slack)
+    assert n_active >= 12  # the bounds bite on most ticks
+    # level 1, and level 2 as (z, σ) with 8 rows or as z with the 7 bound rows (A = I and A = row alike)
+    assert hqp.stats.qp_created == 3 and hqp.stats.failures == 0
+
+
+def _banded_reference(levels, lb, ub):
+    """The exact equality form is degenerate with bounds this active: the tool task is held to
+    ±1e-10; quadprog and DAQP (both exact active-set) each rejected a tick of the 24, never the same."""
+    try:
+        return reference(levels, lb, ub, solver="quadprog", band=1e-10)
+    except AssertionError:
+        return reference(levels, lb, ub, solver="daqp", band=1e-10)
+
+
+def _soft_violation(level: Level, x: np.ndarray) -> np.ndarray:
+    cx = level.C @ x
+    return np.maximum(np.maximum(level.l - cx, cx - level.u), 0.0)
 
 
 @hsettings(max_examples=15, deadline=None)

@@ -13,23 +13,23 @@ bounds ``lb ≤ x ≤ ub`` hold on every level.  One level may combine
   elbow constraint never makes the QP infeasible.
 
 **Null-space form** (not the fragile equality form of QP-NOTES): level ``k``
-moves the answer of the levels above only inside ``range(N_k)``, the n×n
-orthogonal projector onto the directions that no higher level owns:
-``x = x_{k−1} + N_k d``.  The answer is always formed through ``N_k``, so a
+moves the answer of the levels above only inside the directions that no higher
+level owns, through an orthonormal basis ``Z_k`` (n×r) of them:
+``x = x_{k−1} + Z_k z``.  The answer is always formed through ``Z_k``, so a
 higher task's residual is preserved by construction, whatever the solver's
-tolerance.  Each level's QP (:class:`LevelQP`, variable ``d`` ∈ Rⁿ plus one
-scaled slack per soft row) has the SAME shape every tick, so its ProxSuite
-object is created once and updated in place; ``d`` is in joint coordinates
-(not a basis that may flip sign between ticks), so the last tick's answer is a
-good warm start.  Two equivalent constraint forms are handed to the back ends:
+tolerance.  Each level's QP (:class:`LevelQP`, variable ``z`` ∈ Rʳ plus one
+scaled slack per soft row) has NO equality rows: on the first level ``Z = I``
+and the bounds are ProxSuite's native box; below, the bounds are the n rows
+``Z z``.  After a full-rank 6×7 tool task r = 1 (the self-motion direction),
+so level 2 is a QP in 1 (+ slack) variables.  Its shape changes only when the
+rank does (singularities): ProxSuite keeps one object per (level, shape).  The
+sign of a basis column is fixed (largest-magnitude entry positive) so that the
+previous tick's ``z`` stays a good warm start.  Measured on the controller's
+problem (7-DOF, 6×7 J, soft elbow row, tight bounds), against the earlier
+projector form with n equality rows ``(I − N) d = 0``: median 281 → 199 µs per
+solve, 146 µs with ``solve(check=False)`` (2-core machine, interleaved runs).
 
-* ProxSuite (native): ``(I − N_k) d = 0`` as n homogeneous equalities (``d = 0``
-  is always feasible) and the bounds as its native box on ``d``;
-* active-set back ends (DAQP, quadprog, …; they fail on that rank-deficient
-  equality — measured): ``d = N_k z`` substituted, the bounds as rows ``N_k z``.
-
-The Hessian carries ``(I − N_k)`` (zero on the feasible set, keeps it
-positive definite) and a tie-break ``½ μ ‖d‖²`` only in the directions that the
+The Hessian carries a tie-break ``½ μ ‖z‖²`` only in the directions that the
 level's own task leaves free (``μ = QPSettings.regularization``: 1e-7 for the
 active-set back ends, which need a positive-definite H — DAQP failed at 1e-8 on
 a level without curvature, 1e-6 biased answers by 2.5e-6, measured; 0 for
@@ -38,12 +38,12 @@ accuracy and hit max_iter with a tiny curvature at tight tolerances,
 measured).  μ must stay small: with bounds active, moving along a task's null
 space can still lower its residual (it changes which bounds bind).
 
-A level *owns* (removes from ``N`` for the levels below it):
+A level *owns* (removes from ``Z`` for the levels below it; all in z, r×r):
 
-1. the right singular vectors of ``W^½ A N_k`` with ``σ > rank_tol·max(1, σ_max)``
+1. the right singular vectors of ``W^½ A Z_k`` with ``σ > rank_tol·max(1, σ_max)``
    — so lower levels change a higher equality task's residual by at most
    ``rank_tol·‖d‖`` (≈1e-10·‖d‖, exactly zero for an exactly singular row);
-2. the range of ``N H N`` (eigenvalues above ``rank_tol·max(1, ‖H‖)``);
+2. the range of ``Zᵀ H Z`` (eigenvalues above ``rank_tol·max(1, ‖H‖)``);
 3. the direction of its projected gradient, if that is not ~0 (a linear cost
    blocked by constraints).
 

@@ -39,6 +39,9 @@ from qpnso.rom import ElbowConfig, clip_rom, stiffness
 from qpnso.state import StateEvaluator, TickState
 
 _DIAG6 = np.diag_indices(6)
+ELBOW_SLACK_REPORTED = 1e-3
+"""rad/s: an elbow row violated by more than this is flagged ``ELBOW_SLACK``.  A soft
+row held by the cost is always violated by about (cost force)/(2·slack_weight) ≈ 1e-5."""
 
 
 def _norm(v: np.ndarray) -> float:
@@ -258,7 +261,7 @@ class Controller:
         level1 = Level(A=state.jacobian, b=twist + self.config.pose_gain * error)
         level2 = self.strategy.level2(state, elbow)
         levels = [level1] if level2 is None else [level1, level2]
-        result = self.qp.solve(levels, lb, ub)
+        result = self.qp.solve(levels, lb, ub, check=False)  # arrays built here; the answer is still checked
         dq_cmd, qp_status, message = self._command_velocity(result, len(levels))
         status |= qp_status
         tau = self._torque(state, dq_cmd, dq_meas, elbow)
@@ -367,7 +370,8 @@ class Controller:
         """The QP's answer, or the safe fallback: level-1 solution, else zero."""
         if result.ok:
             status = Status.OK
-            if result.levels[-1].slack is not None and np.max(result.levels[-1].slack, initial=0.0) > 1e-6:
+            slack = result.levels[-1].slack
+            if slack is not None and slack.size and slack.max() > ELBOW_SLACK_REPORTED:
                 status |= Status.ELBOW_SLACK
             return result.x, status, ""
         fallback = result.x if result.x is not None and np.all(np.isfinite(result.x)) else None

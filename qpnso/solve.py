@@ -75,28 +75,44 @@ def load_config(path: str | Path | None, overrides: dict | None = None) -> Contr
     return ControllerConfig.from_dict(values)
 
 
-def initial_configuration(robot: Robot, pose: pin.SE3, arm_angle: float = 0.0) -> np.ndarray:
+def initial_configuration(robot: Robot, pose: pin.SE3, arm_angle: float = 0.0,
+                          interval_margin_deg: float = 15.0) -> np.ndarray:
     """A configuration (rad) reaching ``pose`` with the arm angle closest to ``arm_angle``
-    (0 = elbow up) among the branches whose joints are inside their limits."""
+    (0 = elbow up), joints 2° inside their limits, preferring those at least
+    ``interval_margin_deg`` from the ends of their continuity interval (S-R-S arms)."""
     from qpnso.elbow import Branch, ik
+    from qpnso.intervals import continuity_interval
 
-    best: tuple[float, np.ndarray] | None = None
+    candidates = []
+    offsets = np.radians(np.arange(0, 181, 5))
     for signs in [(1, 1, 1), (1, 1, -1), (-1, 1, 1), (-1, 1, -1), (1, -1, 1), (1, -1, -1), (-1, -1, 1), (-1, -1, -1)]:
-        for offset in np.radians(np.arange(0, 181, 5)):
+        for offset in offsets:
             for ns in (arm_angle + offset, arm_angle - offset):
                 try:
-                    q = ik(robot, pose, float(ns), Branch(*signs))
+                    q = ik(robot, pose, float(np.angle(np.exp(1j * ns))), Branch(*signs))
                 except QpnsoError:
                     continue
-                margin = np.min(np.minimum(q - robot.q_min, robot.q_max - q))
-                if margin > np.radians(2) and (best is None or offset < best[0]):
-                    best = (offset, q)
-                    break
-            if best is not None and best[0] == offset:
-                break
-    if best is None:
+                if np.min(np.minimum(q - robot.q_min, robot.q_max - q)) > np.radians(2):
+                    candidates.append((float(offset), q))
+    if not candidates:
         raise UnreachableError("no configuration inside the joint limits reaches the first pose of the trajectory")
-    return best[1]
+    candidates.sort(key=lambda c: c[0])
+    for _, q in candidates:
+        if _interval_room(robot, q, continuity_interval) >= np.radians(interval_margin_deg):
+            return q
+    return candidates[0][1]
+
+
+def _interval_room(robot: Robot, q: np.ndarray, continuity_interval) -> float:
+    """Distance (rad) of q's arm angle from its continuity interval's nearer end."""
+    from qpnso.elbow import arm_angle
+
+    try:
+        iv = continuity_interval(robot, q)
+        ns = arm_angle(robot, q)
+    except QpnsoError:
+        return -np.inf
+    return np.inf if iv.full_circle else min(ns - iv.lo, iv.hi - ns)
 
 
 class Recorder:

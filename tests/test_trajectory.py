@@ -335,11 +335,17 @@ def test_hold():
 
 @pytest.mark.parametrize("name", ["guidance_lwr4p.csv", "hold_lwr4p.csv"])
 def test_shipped_files(name):
+    """The shipped paths are scenario A's pose (elbow-up start, far from limits), as generated."""
+    from qpnso.scenarios import load_scenario
+
     path = EXAMPLES / name
-    assert path.stat().st_size < 300_000
+    assert path.stat().st_size < 400_000
     traj = read_csv(path)
-    c = np.array([0.5, 0.0, 0.45])
-    np.testing.assert_allclose(traj.position[0], c, atol=1e-9)
-    np.testing.assert_allclose(traj.position[-1], c, atol=1e-9)
-    np.testing.assert_allclose(traj.sample(1.0)[1], DOWN, atol=1e-9)
+    pose = load_scenario("A").tool_pose()
+    np.testing.assert_allclose(traj.position[0], pose.translation, atol=1e-9)
+    np.testing.assert_allclose(traj.position[-1], pose.translation, atol=1e-9)
+    np.testing.assert_allclose(traj.sample(1.0)[1], pose.rotation, atol=1e-9)
     np.testing.assert_allclose(np.diff(traj.t), 0.01, atol=1e-9)
+    if name.startswith("guidance"):
+        regenerated = guidance_path(pose, size=0.08, speed=0.05, dt=0.01)
+        np.testing.assert_allclose(traj.position, regenerated.position, atol=1e-9)

@@ -38,7 +38,6 @@ from qpnso.robot import Robot, as_vector
 from qpnso.rom import ElbowConfig, clip_rom, stiffness
 from qpnso.state import StateEvaluator, TickState
 
-_DIAG6 = np.diag_indices(6)
 ELBOW_SLACK_REPORTED = 1e-3
 """rad/s: an elbow row violated by more than this is flagged ``ELBOW_SLACK``.  A soft
 row held by the cost is always violated by about (cost force)/(2·slack_weight) ≈ 1e-5."""
@@ -280,7 +279,7 @@ class Controller:
         """Shape/NaN → InputError; outside the limits is recovered (flagged), not refused."""
         qv = as_vector(q, self.robot.nq, "q")
         r = self.robot
-        if np.any(qv < r.q_min - 1e-9) or np.any(qv > r.q_max + 1e-9):
+        if (qv < r.q_min - 1e-9).any() or (qv > r.q_max + 1e-9).any():
             return qv, Status.Q_OUT_OF_LIMITS
         return qv, Status.OK
 
@@ -393,7 +392,7 @@ class Controller:
         chol_a, info = _dpotrf(a, lower=0)
         a_inv_jt, _ = _dpotrs(chol_a, jac.T, lower=0)
         lam_inv = jac @ a_inv_jt
-        lam_inv[_DIAG6] += 1e-12 * np.trace(lam_inv)
+        lam_inv.flat[::7] += 1e-12 * lam_inv.trace()
         chol_l, info_l = _dpotrf(lam_inv, lower=0)
         if info or info_l:
             return g + tau_null  # not positive definite: no projection rather than NaN

@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.linalg.lapack import dposv as _dposv
 
 from qpnso.errors import ConfigError, QpnsoError
 from qpnso.hqp import Level
@@ -82,8 +83,9 @@ class FixedPosture(Strategy):
 def nullspace_part(jac: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``v − J⁺Jv``: the part of ``v`` in the null space of ``J`` (JJᵀ regularised by 1e-12 of its trace)."""
     jjt = jac @ jac.T
-    jjt[np.diag_indices_from(jjt)] += 1e-12 * np.trace(jjt)
-    return v - jac.T @ np.linalg.solve(jjt, jac @ v)
+    jjt.flat[:: jjt.shape[0] + 1] += 1e-12 * jjt.trace()
+    x, info = _dposv(jjt, jac @ v)[1:]
+    return v - jac.T @ x if info == 0 else v
 
 
 def arm_angle_step(state: "TickState", delta_ns: float) -> np.ndarray:

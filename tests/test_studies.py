@@ -100,7 +100,7 @@ def _dense_extremum(curve, objective, sense, step_deg=0.01):
     return grid[i], sign * values[i]
 
 
-@pytest.mark.parametrize("seed", [11, 12, 13])
+@pytest.mark.parametrize("seed", [11, 12])
 def test_extremum_matches_dense_sampling(bench, seed):
     q0 = _starts(bench, 1, seed=seed)[0]
     curve = SelfMotionCurve(bench, q0, math.radians(1.0))
@@ -250,3 +250,14 @@ def test_dask_local_cluster_matches_local_run(tmp_path):
         remote = run_study("workspace", tmp_path / "dask", n=4, seed=9, scheduler=cluster.scheduler_address)
     assert _results(tmp_path / "local") == _results(tmp_path / "dask")
     assert remote["mass_reduction_pct"] == local["mass_reduction_pct"]
+
+
+def test_scenarios_study_writes_table_one(tmp_path):
+    s = run_study("scenarios", tmp_path, workers=2, options={"duration_scale": 0.005})
+    table = (tmp_path / "table.md").read_text().splitlines()
+    assert len(table) == 2 + len(studies.SCENARIO_JOBS)
+    for sc, st in studies.SCENARIO_JOBS:
+        row = s["table"][sc][st]
+        assert row["margin_respected"] == (row["constraint_proximity_deg"] >= 10.0)
+        assert any(line.startswith(f"| {sc} | {st} |") for line in table)
+    assert s["paper"]["smoothness"]["B"]["damped"] == 1140

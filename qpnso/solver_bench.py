@@ -129,9 +129,9 @@ def level_problems(n: int, levels: Sequence[Level], lb: np.ndarray | None, ub: n
     cascade = Cascade.start(lo, hi)
     out: list[BenchProblem] = []
     for k, (level, res) in enumerate(zip(levels, result.levels)):
-        qp = build_level_qp(level, cascade, settings)
         if not res.ok:
             break
+        qp = build_level_qp(level, cascade, settings)
         if qp.H.shape[0] and qp.r:
             out.append(_from_level_qp(qp, f"{sequence}/t{tick:05d}/L{k + 1}", sequence, k + 1, tick, res.x))
         if k + 1 < len(levels):
@@ -381,7 +381,8 @@ class Outcome:
 class _Native:
     """ProxSuite's dense API as the controller uses it: one QP object per (sequence, level,
     shape), created and ``init``-ed at its first problem, then ``update`` + ``solve`` warm-started
-    with the previous result; the two-sided rows and the native box as given."""
+    with the previous result (a failed warm solve is retried cold, timed too); the two-sided rows
+    and the native box as given."""
 
     def __init__(self, settings: BenchSettings) -> None:
         import proxsuite
@@ -412,6 +413,11 @@ class _Native:
         else:
             obj.update(**data)
             obj.solve()
+            if obj.results.info.status != self._px.QPSolverOutput.PROXQP_SOLVED:  # as qpnso.hqp: retry cold
+                obj.settings.initial_guess = self._px.InitialGuess.EQUALITY_CONSTRAINED_INITIAL_GUESS
+                obj.init(**data)
+                obj.solve()
+                obj.settings.initial_guess = self._px.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
         elapsed = time.perf_counter() - t0
         res = obj.results
         status = res.info.status
@@ -665,7 +671,7 @@ class RecordPlan:
 
 
 QUICK_PLAN = RecordPlan(ticks=1300, chunk_ticks=20, period=600, skip=100)
-FULL_PLAN = RecordPlan(ticks=6000, chunk_ticks=100, period=500, skip=100)
+FULL_PLAN = RecordPlan(ticks=6000, chunk_ticks=50, period=1000, skip=100)
 
 
 def _track(ctrl, traj, q0: np.ndarray, ticks: int) -> None:

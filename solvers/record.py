@@ -1,7 +1,7 @@
 """Regenerate the solver benchmark's problem sets from real controller runs.
 
     python solvers/record.py            # solvers/problems/quick.npz (committed, ~560 QPs)
-    python solvers/record.py --full     # solvers/problems/full.npz (not committed, ~7000 QPs)
+    python solvers/record.py --full     # solvers/problems/full.npz (not committed, ~4000 QPs)
 
 Each source (scenarios A and B, the guidance path on the iiwa14, held tools at
 random postures of both robots) is tracked offline by the shipped controller;

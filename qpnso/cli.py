@@ -312,6 +312,30 @@ def comparison_table(rows: list, sc) -> str:  # type: ignore[no-untyped-def]
     return "\n".join(lines)
 
 
+# --------------------------------------------------------------------- study
+def cmd_study(args: argparse.Namespace) -> int:
+    """One of the papers' studies, on every core or a Dask cluster."""
+    from pathlib import Path
+
+    from qpnso.studies import run_study
+
+    options = {}
+    for item in args.option or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise argparse.ArgumentTypeError(f"--option takes key=value, got {item!r}")
+        options[key.strip()] = value.strip()
+    summary = run_study(args.name, Path(args.out), n=args.n, seed=args.seed, workers=args.workers,
+                        scheduler=args.scheduler, progress=not args.quiet, options=options or None)
+    print_summary({k: v for k, v in summary.items() if not isinstance(v, (dict, list))},
+                  f"study {args.name} -> {args.out}")
+    for key, value in summary.items():
+        if isinstance(value, dict):
+            print(f"  {key}: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                            for k, v in value.items()))
+    return 0
+
+
 # --------------------------------------------------------------------- bench
 def cmd_bench(args: argparse.Namespace) -> int:
     """Time the cost or the control tick; print a Markdown table of medians and p99."""
@@ -394,6 +418,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="folder for comparison.md and comparison.png")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=cmd_compare)
+
+    p = sub.add_parser("study", help="reproduce a study of the papers (JSON + CSV + PNG in --out)")
+    p.add_argument("name", choices=["workspace", "tradeoff", "uncertainty", "scenarios"])
+    p.add_argument("--n", type=int, default=None, help="poses (default: the paper's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None, help="processes (default: every core)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786)")
+    p.add_argument("--option", action="append", help="study option key=value (repeatable)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("bench", help="time the cost evaluation or the control tick (median, p99)")
     p.add_argument("what", choices=["cost", "tick"])

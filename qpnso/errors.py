@@ -51,3 +51,7 @@ class TrajectoryError(InputError):
 
 class ConfigError(InputError):
     """A configuration key or value is unknown or invalid."""
+
+
+class JobError(QpnsoError):
+    """A study job raised; the message names the study, the job index and the error."""

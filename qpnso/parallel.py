@@ -32,14 +32,10 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from qpnso.errors import ConfigError, QpnsoError
+from qpnso.errors import ConfigError, JobError
 
 CHECKPOINT = "checkpoint.jsonl"
 """Name of the checkpoint file inside the output folder."""
-
-
-class JobError(QpnsoError):
-    """A study job raised; the message names the study, the job index and the error."""
 
 
 def job_seed_sequence(seed: int, index: int) -> np.random.SeedSequence:

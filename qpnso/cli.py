@@ -341,6 +341,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     """Time the cost or the control tick; print a Markdown table of medians and p99."""
     from qpnso import benchmark
 
+    if args.what == "solvers":
+        from pathlib import Path
+
+        from qpnso.solver_bench import run_solver_benchmark
+
+        report = run_solver_benchmark(Path(args.out), quick=args.quick, progress=None if args.quiet else print)
+        print(report.read_text())
+        return 0
     robot = load_cli_robot(args)
     if args.what == "cost":
         rows = benchmark.bench_cost(robot, n=args.n)
@@ -431,10 +439,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("bench", help="time the cost evaluation or the control tick (median, p99)")
-    p.add_argument("what", choices=["cost", "tick"])
+    p.add_argument("what", choices=["cost", "tick", "solvers"])
     add_robot_arguments(p)
     p.add_argument("-n", type=int, default=3000, help="timed calls per row (default 3000)")
     p.add_argument("--strategies", default=None, help="comma-separated strategies for 'tick' (default all)")
+    p.add_argument("--quick", action="store_true", help="solvers: the small committed problem set (< 1 min)")
+    p.add_argument("--out", default="solver-bench", help="solvers: folder for report.md, results.csv, figure")
+    p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=cmd_bench)
     return parser
 

@@ -87,6 +87,7 @@ class ControllerConfig:
     pose_gain: float = 200.0  # 1/s, K_p of level 1
     cost_gain: float = 10.0  # rad²/s per unit cost: level-2 step -gain·∇c
     nullspace_speed_max: float = 1.0  # rad/s, saturation of the cost step (as [M 21])
+    cost_filter_time: float = 0.1  # s, low-pass of the cost step (0: none): no velocity steps
     elbow_gain: float = 5.0  # 1/s, velocity damper of the elbow bounds
     joint_limit_gain: float = 20.0  # 1/s, velocity damper of the joint limits (≤ 1/dt)
     slack_weight: float = 1e6  # weight of the elbow constraints' slack
@@ -115,6 +116,8 @@ class ControllerConfig:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.joint_limit_gain * self.dt > 1.0:
             raise ConfigError("joint_limit_gain·dt must be <= 1 (else a joint could cross its limit)")
+        if self.cost_filter_time < 0:
+            raise ConfigError("cost_filter_time must be >= 0 s")
         if self.rom_half_width_deg <= 0 or self.safety_margin_deg < 0:
             raise ConfigError("rom_half_width_deg must be > 0 and safety_margin_deg >= 0")
         if self.interval_period < 1:

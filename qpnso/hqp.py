@@ -730,7 +730,8 @@ class _QpsolversBackend:
         up, down = np.isfinite(hi), np.isfinite(lo)
         G = np.vstack([C[up], -C[down]])
         h = np.concatenate([hi[up], -lo[down]])
-        problem = self._qpsolvers.Problem(qp.H, qp.g, G if h.size else None, h if h.size else None)
+        H = 0.5 * (qp.H + qp.H.T)  # exactly symmetric: some back ends (sip) check it bit for bit
+        problem = self._qpsolvers.Problem(H, qp.g, G if h.size else None, h if h.size else None)
         try:
             sol = self._qpsolvers.solve_problem(problem, solver=self._solver, **self._options)
         except Exception as exc:  # a back end's own failure becomes a level status

@@ -201,6 +201,9 @@ class QPStrategy(Strategy):
     def stiffness(self, elbow) -> float:
         return elbow.stiffness
 
+    def reset(self, q0: np.ndarray, state: "TickState") -> None:
+        self._step = None
+
     def level2(self, state, elbow) -> Level:
         cfg = self.cfg
         step = cfg.cost_gain * state.cost_gradient
@@ -208,6 +211,7 @@ class QPStrategy(Strategy):
         norm = float(np.sqrt(free @ free))
         if norm > cfg.nullspace_speed_max:
             step *= cfg.nullspace_speed_max / norm
+        step = self._smoothed(step)
         if elbow.dropped:
             return Level(H=self._identity, g=step)
         lo, hi = elbow.rom
@@ -215,6 +219,17 @@ class QPStrategy(Strategy):
         l = np.array([cfg.elbow_gain * (lo - elbow.ns)])
         u = np.array([cfg.elbow_gain * (hi - elbow.ns)])
         return Level(H=self._identity, g=step, C=row, l=l, u=u, slack_weight=cfg.slack_weight)
+
+    def _smoothed(self, step: np.ndarray) -> np.ndarray:
+        """First-order low-pass of the cost step (time constant ``cost_filter_time``,
+        starting from rest): the null-space velocity has no steps, so the hand feels no jerk."""
+        tau = self.cfg.cost_filter_time
+        if tau <= 0:
+            return step
+        if self._step is None:
+            self._step = np.zeros_like(step)
+        self._step = self._step + (self.cfg.dt / max(tau, self.cfg.dt)) * (step - self._step)
+        return self._step
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         cfg = self.cfg

@@ -353,6 +353,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "cost":
         rows = benchmark.bench_cost(robot, n=args.n)
         title = f"cost.value + cost.gradient, {robot.name}, mass + friction force"
+    elif args.what == "interval":
+        rows = benchmark.bench_interval(robot, n=args.n)
+        title = f"continuity interval, {robot.name}"
     else:
         strategies = tuple(args.strategies.split(",")) if args.strategies else None
         rows = benchmark.bench_tick(robot, n=args.n, strategies=strategies)
@@ -439,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("bench", help="time the cost evaluation or the control tick (median, p99)")
-    p.add_argument("what", choices=["cost", "tick", "solvers"])
+    p.add_argument("what", choices=["cost", "interval", "tick", "solvers"])
     add_robot_arguments(p)
     p.add_argument("-n", type=int, default=3000, help="timed calls per row (default 3000)")
     p.add_argument("--strategies", default=None, help="comma-separated strategies for 'tick' (default all)")

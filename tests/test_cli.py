@@ -116,3 +116,13 @@ def test_plot_rejects_a_foreign_file(tmp_path, capsys) -> None:
     np.savez(bad, a=np.zeros(3))
     assert main(["plot", str(bad), "--out", str(tmp_path / "x.png")]) == 2
     assert "not a qpnso result file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("what", ["cost", "interval", "tick"])
+def test_bench_prints_median_and_p99(capsys, what) -> None:
+    argv = ["bench", what, "-n", "20"] + (["--strategies", "qp,damped"] if what == "tick" else [])
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "| median µs | p99 µs |" in out
+    rows = [line for line in out.splitlines() if line.startswith("| ") and "µs" not in line and "---" not in line]
+    assert rows and all(float(r.split("|")[2]) > 0 for r in rows)

@@ -23,7 +23,7 @@ import pinocchio as pin
 
 from qpnso.controller import Controller
 from qpnso.errors import InputError, QpnsoError
-from qpnso.solve import Recorder, RunResult, feel_summary
+from qpnso.solve import Recorder, RunResult
 from qpnso.trajectory import Trajectory
 
 
@@ -74,9 +74,6 @@ def simulate(controller: Controller, path: Trajectory, q0: np.ndarray,
     (m/s, rad/s), and the run's summary (metrics of METHOD §9, felt mass and
     friction every 10 ticks).
     """
-    from qpnso.controller import Status
-    from qpnso.metrics import summarize_run
-
     cfg = config or SimulationConfig()
     robot = controller.robot
     model = robot.model.copy()
@@ -107,10 +104,7 @@ def simulate(controller: Controller, path: Trajectory, q0: np.ndarray,
             raise SimulationError(f"the simulation diverged at t = {t:.3f} s (try more substeps)")
         if progress is not None:
             progress(k + 1, n_ticks)
-    result = recorder.result()
-    result.summary = summarize_run(result.arrays, {f.name: f.value for f in Status if f.value})
-    result.summary.update(feel_summary(result.arrays))
-    return result
+    return recorder.result()
 
 
 def _tool_state(model, data, q, dq, tool_id) -> tuple:

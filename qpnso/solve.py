@@ -158,8 +158,14 @@ class Recorder:
             self.messages.append(f"t={t:.3f}s: {cmd.message}")
 
     def result(self) -> RunResult:
+        """The arrays and their summary (METHOD §9 metrics, status counts, felt mass and friction)."""
+        from qpnso.controller import Status
+        from qpnso.metrics import summarize_run
+
         arrays = {k: np.asarray(v) for k, v in self.rec.items()}
-        return RunResult(arrays, messages=self.messages)
+        summary = summarize_run(arrays, {f.name: f.value for f in Status if f.value})
+        summary.update(feel_summary(arrays))
+        return RunResult(arrays, summary, self.messages)
 
 
 def solve_trajectory(robot: Robot, traj: Trajectory, q0: np.ndarray | None = None,
@@ -169,9 +175,6 @@ def solve_trajectory(robot: Robot, traj: Trajectory, q0: np.ndarray | None = Non
     ``q0`` (rad) must put the tool on the first pose (within 1 mm); without it,
     :func:`initial_configuration` finds one with the elbow up.
     """
-    from qpnso.controller import Status
-    from qpnso.metrics import summarize_run
-
     cfg = config or ControllerConfig()
     ctrl = Controller(robot, cfg)
     first = traj.pose(traj.t[0])
@@ -191,10 +194,7 @@ def solve_trajectory(robot: Robot, traj: Trajectory, q0: np.ndarray | None = Non
         q = q + cfg.dt * cmd.dq
         if progress is not None:
             progress(k + 1, n)
-    result = recorder.result()
-    result.summary = summarize_run(result.arrays, {f.name: f.value for f in Status if f.value})
-    result.summary.update(feel_summary(result.arrays))
-    return result
+    return recorder.result()
 
 
 def feel_summary(arrays: dict[str, np.ndarray]) -> dict[str, float]:

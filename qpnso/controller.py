@@ -23,7 +23,7 @@ from __future__ import annotations
 import enum
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import pinocchio as pin
@@ -404,8 +404,3 @@ class Controller:
 
     def __repr__(self) -> str:
         return f"Controller({self.robot.name!r}, strategy={self.config.strategy!r}, dt={self.config.dt})"
-
-
-def with_strategy(config: ControllerConfig, strategy: str) -> ControllerConfig:
-    """A copy of ``config`` using another strategy."""
-    return replace(config, strategy=strategy)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import tempfile
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -207,10 +206,3 @@ def feel_summary(arrays: dict[str, np.ndarray]) -> dict[str, float]:
             out[f"{key}_mean_{unit}"] = float(v.mean())
             out[f"{key}_max_{unit}"] = float(v.max())
     return out
-
-
-def timed(fn, *args, **kwargs):
-    """``(result, seconds)`` of a call."""
-    t0 = time.perf_counter()
-    out = fn(*args, **kwargs)
-    return out, time.perf_counter() - t0

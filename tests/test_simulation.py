@@ -57,7 +57,7 @@ def test_stiff_friction_is_stable_at_the_control_rate(lwr) -> None:
         q, dq = _integrate(model, data, q, dq, lwr.gravity(q), lwr, lwr.tool_frame_id, 5e-4, hand, ref)
         energy.append(kinetic(q, dq))
     assert np.all(np.isfinite(dq))
-    assert energy[-1] < 0.5 * energy[0]
+    assert energy[-1] < 0.8 * energy[0]
     assert np.all(np.diff(energy) < 1e-6 * energy[0])
 
 

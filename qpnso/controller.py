@@ -38,6 +38,9 @@ from qpnso.robot import Robot, as_vector
 from qpnso.rom import ElbowConfig, clip_rom, stiffness
 from qpnso.state import StateEvaluator, TickState
 
+TOOL_RESIDUAL_REPORTED = 1e-6
+"""m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
+the tool's motion) is flagged ``TOOL_LIMITED``."""
 ELBOW_SLACK_REPORTED = 1e-3
 """rad/s: an elbow row violated by more than this is flagged ``ELBOW_SLACK``.  A soft
 row held by the cost is always violated by about (cost force)/(2·slack_weight) ≈ 1e-5."""
@@ -226,7 +229,6 @@ class Controller:
         self.ref_position = state.tool_position.copy()
         self.ns0 = float(state.arm_angle if ns0 is None else ns0)
         self._ns_prev = float(state.arm_angle)
-        self._ns_turns = 0.0
         self._interval: Interval | None = None
         self._interval_pose: tuple[np.ndarray, np.ndarray] | None = None
         self._interval_age = 0
@@ -264,7 +266,7 @@ class Controller:
         level2 = self.strategy.level2(state, elbow)
         levels = [level1] if level2 is None else [level1, level2]
         result = self.qp.solve(levels, lb, ub, check=False)  # arrays built here; the answer is still checked
-        dq_cmd, qp_status, message = self._command_velocity(result, len(levels))
+        dq_cmd, qp_status, message = self._command_velocity(result)
         status |= qp_status
         tau = self._torque(state, dq_cmd, dq_meas, elbow)
         self._advance_reference(twist, tool_pose is not None)
@@ -368,10 +370,13 @@ class Controller:
         k = np.round((ns - 0.5 * (interval.lo + interval.hi)) / (2 * np.pi))
         return Interval(interval.lo + 2 * np.pi * k, interval.hi + 2 * np.pi * k, False)
 
-    def _command_velocity(self, result, n_levels: int) -> tuple[np.ndarray, Status, str]:
+    def _command_velocity(self, result) -> tuple[np.ndarray, Status, str]:
         """The QP's answer, or the safe fallback: level-1 solution, else zero."""
         if result.ok:
             status = Status.OK
+            tool = result.levels[0].residual
+            if tool is not None and tool > TOOL_RESIDUAL_REPORTED:
+                status |= Status.TOOL_LIMITED
             slack = result.levels[-1].slack
             if slack is not None and slack.size and slack.max() > ELBOW_SLACK_REPORTED:
                 status |= Status.ELBOW_SLACK

@@ -291,3 +291,15 @@ def test_config_from_dict_names_unknown_keys() -> None:
         ControllerConfig.from_dict({"colour": "red"})
     cfg = ControllerConfig.from_dict({"strategy": "rom", "weights": {"mass": 0.3, "friction_force": 0.7}})
     assert cfg.weights.mass == 0.3 and cfg.strategy == "rom"
+
+
+def test_tool_motion_beyond_the_joint_speeds_is_flagged(lwr_qp: Controller) -> None:
+    """A 5 m/s tool twist needs more than the joint velocity limits: the bounds hold,
+    level 1 does what it can, and the status says the tool was limited."""
+    robot = lwr_qp.robot
+    q0 = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2])
+    lwr_qp.reset(q0)
+    cmd = lwr_qp.step(q0, tool_twist=np.array([5.0, 0, 0, 0, 0, 0]))
+    assert cmd.status & Status.TOOL_LIMITED and cmd.ok
+    assert np.all(np.abs(cmd.dq) <= robot.dq_max + 1e-9)
+    assert (robot.jacobian(q0) @ cmd.dq)[0] > 0.1  # still moving the tool the right way

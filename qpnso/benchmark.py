@@ -115,11 +115,10 @@ def held_tool_run(ctrl, q0: np.ndarray, n: int) -> np.ndarray:
 
 def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None = None) -> list[Timing]:
     """``Controller.step`` per strategy, tool held, from the sample configuration."""
-    from qpnso.cli import sample_configuration
     from qpnso.controller import STRATEGIES, Controller, ControllerConfig
 
     strategies = strategies or STRATEGIES
-    q0 = sample_configuration(robot)
+    q0 = robot.sample_configuration()
     out = []
     for name in strategies:
         ctrl = Controller(robot, ControllerConfig(strategy=name))

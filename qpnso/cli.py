@@ -31,22 +31,13 @@ def parse_vector(text: str, n: int | None = None, what: str = "vector") -> np.nd
     return values
 
 
-def sample_configuration(robot) -> np.ndarray:
-    """A non-singular configuration inside the limits: elbow bent, wrist bent (rad)."""
-    q = np.zeros(robot.nq)
-    q[1], q[3], q[5] = 0.5, -1.2, 0.8
-    if robot.name == "panda":  # Franka's "ready" posture
-        q = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
-    return np.clip(q, robot.q_min, robot.q_max)
-
-
 def robot_q(args: argparse.Namespace, robot) -> np.ndarray:
     """``--q`` (rad) or ``--q-deg`` (degrees), else the sample configuration; checked."""
     if getattr(args, "q_deg", None) is not None:
         return robot.check_q(np.radians(parse_vector(args.q_deg, robot.nq, "--q-deg")), "--q-deg")
     if getattr(args, "q", None) is not None:
         return robot.check_q(parse_vector(args.q, robot.nq, "--q"), "--q")
-    return sample_configuration(robot)
+    return robot.sample_configuration()
 
 
 def add_robot_arguments(p: argparse.ArgumentParser, positional: bool = False) -> None:
@@ -225,26 +216,21 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     """Hands-on guidance simulation of a scenario with one strategy."""
     from pathlib import Path
 
-    from qpnso.controller import Controller
     from qpnso.plots import plot_run
-    from qpnso.robot import load_robot
-    from qpnso.scenarios import load_scenario
-    from qpnso.simulation import simulate
-    from qpnso.solve import load_config
+    from qpnso.scenarios import load_scenario, simulate_scenario
+    from qpnso.solve import config_values
 
     sc = load_scenario(args.scenario)
-    robot = load_robot(sc.robot)
-    cfg = load_config(args.config, {**sc.controller, **controller_overrides(args)})
-    path = sc.path()
-    if args.duration_scale < 1.0:
-        path = path.window(path.t[0], path.t[0] + args.duration_scale * path.duration)
-    result = simulate(Controller(robot, cfg), path, sc.start(robot), progress=progress_bar(not args.quiet, "simulate"))
+    settings = config_values(args.config, controller_overrides(args))
+    result = simulate_scenario(args.scenario, None, args.duration_scale,
+                               progress_bar(not args.quiet, "simulate"), settings)
+    strategy = settings.get("strategy", sc.controller.get("strategy", "qp"))
     out = Path(args.out)
     result.save(out / "result.npz")
-    write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": cfg.strategy, **result.summary})
+    write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": strategy, **result.summary})
     if not args.no_plot:
-        plot_run(result.arrays, out / "run.png", title=f"scenario {sc.name}, strategy {cfg.strategy}")
-    print_summary(result.summary, f"scenario {sc.name} ({sc.description}), strategy {cfg.strategy} -> {out}")
+        plot_run(result.arrays, out / "run.png", title=f"scenario {sc.name}, strategy {strategy}")
+    print_summary(result.summary, f"scenario {sc.name} ({sc.description}), strategy {strategy} -> {out}")
     return 0
 
 
@@ -274,7 +260,6 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from qpnso.errors import ConfigError
     from qpnso.plots import plot_comparison
     from qpnso.scenarios import load_scenario, simulate_scenario
-    from qpnso.metrics import summarize_run
 
     strategies = [x.strip() for x in args.strategies.split(",") if x.strip()]
     unknown = [x for x in strategies if x not in STRATEGIES]
@@ -283,10 +268,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     runs, rows = {}, []
     for name in strategies:
-        arrays = simulate_scenario(args.scenario, name, args.duration_scale, progress_bar(not args.quiet, name))
-        m = summarize_run(arrays)
-        runs[name] = arrays
-        rows.append((name, m))
+        result = simulate_scenario(args.scenario, name, args.duration_scale, progress_bar(not args.quiet, name))
+        runs[name] = result.arrays
+        rows.append((name, result.summary))
     out = Path(args.out)
     table = comparison_table(rows, sc)
     out.mkdir(parents=True, exist_ok=True)

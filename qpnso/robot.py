@@ -130,6 +130,16 @@ class Robot:
             )
         return v
 
+    def sample_configuration(self) -> np.ndarray:
+        """A non-singular configuration inside the limits (rad): elbow and wrist bent;
+        the Panda's "ready" posture for ``panda``."""
+        if self.name == "panda":
+            q = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+        else:
+            q = np.zeros(self.nq)
+            q[1], q[3], q[5] = 0.5, -1.2, 0.8
+        return np.clip(q, self.q_min, self.q_max)
+
     def random_q(self, rng: np.random.Generator, margin: float = 0.0) -> np.ndarray:
         """A configuration drawn uniformly within the limits shrunk by ``margin`` rad."""
         return rng.uniform(self.q_min + margin, self.q_max - margin)

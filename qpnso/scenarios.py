@@ -15,9 +15,14 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from typing import TYPE_CHECKING
+
 from qpnso.errors import ConfigError
 from qpnso.robot import Robot, load_robot
 from qpnso.trajectory import Trajectory, guidance_path
+
+if TYPE_CHECKING:
+    from qpnso.solve import RunResult
 
 try:  # Python 3.11+
     import tomllib
@@ -99,23 +104,26 @@ def run_scenario(name: str, strategy: str, seed: int = 0, duration_scale: float 
     ``duration_scale`` < 1 runs only the start of the path (for quick checks).
     ``seed`` is accepted for the study runner; the simulation is deterministic.
     """
-    from qpnso.controller import Status
-    from qpnso.metrics import summarize_run
-
-    run = simulate_scenario(name, strategy, duration_scale, progress)
-    return summarize_run(run, {f.name: f.value for f in Status if f.value})
+    return simulate_scenario(name, strategy, duration_scale, progress).summary
 
 
-def simulate_scenario(name: str, strategy: str, duration_scale: float = 1.0, progress=None) -> dict[str, np.ndarray]:
-    """The per-tick arrays of a simulated scenario run (:data:`qpnso.solve.RESULT_KEYS` and more)."""
+def simulate_scenario(name: str, strategy: str | None = None, duration_scale: float = 1.0, progress=None,
+                      settings: dict | None = None) -> "RunResult":
+    """Simulate scenario ``name``: the per-tick arrays and summary (:class:`qpnso.solve.RunResult`).
+
+    Controller settings: the scenario file's ``[controller]``, then ``settings``
+    (e.g. a user's config file and CLI flags), then ``strategy`` if given.
+    """
     from qpnso.controller import Controller, ControllerConfig
     from qpnso.simulation import simulate
 
     sc = load_scenario(name)
     robot = load_robot(sc.robot)
-    cfg = ControllerConfig.from_dict({**sc.controller, "strategy": strategy})
+    values = {**sc.controller, **(settings or {})}
+    if strategy is not None:
+        values["strategy"] = strategy
     path = sc.path()
     if duration_scale < 1.0:
         path = path.window(path.t[0], path.t[0] + duration_scale * path.duration)
-    ctrl = Controller(robot, cfg)
-    return simulate(ctrl, path, sc.start(robot), progress=progress).arrays
+    ctrl = Controller(robot, ControllerConfig.from_dict(values))
+    return simulate(ctrl, path, sc.start(robot), progress=progress)

@@ -58,8 +58,9 @@ def atomic_write(path: Path, write) -> Path:
     return path
 
 
-def load_config(path: str | Path | None, overrides: dict | None = None) -> ControllerConfig:
-    """A :class:`ControllerConfig` from a TOML file, then ``overrides`` (CLI flags)."""
+def config_values(path: str | Path | None, overrides: dict | None = None) -> dict:
+    """Controller settings as plain data: a TOML file (top level or ``[controller]``),
+    then ``overrides`` (CLI flags; None values are not given)."""
     values: dict = {}
     if path is not None:
         p = Path(path)
@@ -69,9 +70,14 @@ def load_config(path: str | Path | None, overrides: dict | None = None) -> Contr
             values = tomllib.loads(p.read_text())
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-        values = values.get("controller", values)
+        values = dict(values.get("controller", values))
     values.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    return ControllerConfig.from_dict(values)
+    return values
+
+
+def load_config(path: str | Path | None, overrides: dict | None = None) -> ControllerConfig:
+    """A :class:`ControllerConfig` from a TOML file, then ``overrides`` (CLI flags)."""
+    return ControllerConfig.from_dict(config_values(path, overrides))
 
 
 def initial_configuration(robot: Robot, pose: pin.SE3, arm_angle: float = 0.0,

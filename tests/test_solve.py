@@ -100,7 +100,7 @@ def test_unknown_scenario() -> None:
 
 def test_simulation_keeps_the_elbow_in_rom_and_tracks_the_hand() -> None:
     """Scenario B, 2 s of hands-on guidance with the QP strategy."""
-    arrays = simulate_scenario("B", "qp", duration_scale=2.0 / 36.0)
+    arrays = simulate_scenario("B", "qp", duration_scale=2.0 / 36.0).arrays
     ns, lo, hi = arrays["ns"], arrays["rom_lo"], arrays["rom_hi"]
     assert np.all(ns >= lo - np.radians(0.5)) and np.all(ns <= hi + np.radians(0.5))
     margin = np.radians(10)
@@ -109,3 +109,26 @@ def test_simulation_keeps_the_elbow_in_rom_and_tracks_the_hand() -> None:
     err = np.linalg.norm(arrays["tool_position"] - arrays["ref_position"], axis=1)
     assert err.max() < 0.03  # the hand is a spring: it lags by millimetres to centimetres
     assert np.all(np.isfinite(arrays["q"]))
+
+
+def test_scenario_file_missing_key_is_named(tmp_path) -> None:
+    bad = tmp_path / "s.toml"
+    bad.write_text('[scenario]\nname = "X"\n[start]\ncenter = [0.5, 0, 0.4]\n')
+    with pytest.raises(qpnso.ConfigError, match="missing key 'rpy_deg'"):
+        load_scenario(bad)
+
+
+def test_simulation_settings_override_the_scenario_and_strategy_wins() -> None:
+    run = simulate_scenario("B", "damped", duration_scale=0.05 / 36.0, settings={"rom_half_width_deg": 30.0,
+                                                                                  "strategy": "qp"})
+    # ROM_t's upper end is ns0 + 30° (the interval's end, minus the margin, is farther)
+    assert np.isclose(np.degrees(run.arrays["rom_hi"][0]), -90.0 + 30.0, atol=1e-6)
+    assert np.all(run.arrays["stiffness"] == 0.0)  # damped applies no stiffness: strategy argument won
+
+
+def test_diverging_simulation_is_an_error_not_nan(monkeypatch) -> None:
+    import qpnso.simulation as sim
+
+    monkeypatch.setattr(sim, "_integrate", lambda *a: (np.full(7, np.nan), np.full(7, np.nan)))
+    with pytest.raises(sim.SimulationError, match="diverged at t = 0.000 s"):
+        simulate_scenario("A", "qp", duration_scale=0.01)

@@ -135,7 +135,8 @@ class CostModel:
         )
         self.scales = self._resolve_scales(normalize, scales, n_scale_samples)
         total = self._total_expression()
-        self._total = total
+        self.expression = total
+        """The weighted total as a CasADi SX of ``sym.q`` (for embedding in other functions)."""
         self._value_grad_fn = FastFunction(
             self.sym.function("cost_value_gradient", {"value": total, "gradient": ca.gradient(total, self.sym.q)}),
             mode,
@@ -207,7 +208,7 @@ class CostModel:
     def hessian(self, q: object) -> np.ndarray:
         """Exact Hessian ∇²c(q) (nq×nq); its function is built on first use."""
         if self._hessian_fn is None:
-            h, _ = ca.hessian(self._total, self.sym.q)
+            h, _ = ca.hessian(self.expression, self.sym.q)
             self._hessian_fn = self.sym.function("cost_hessian", {"hessian": h})
         return np.array(self._hessian_fn(self._q(q)))
 
@@ -215,7 +216,7 @@ class CostModel:
         """Exact Hessian-vector product ∇²c(q)·v (forward over reverse AD)."""
         if self._hvp_fn is None:
             vs = ca.SX.sym("v", self.robot.nq)
-            hv = ca.jtimes(ca.gradient(self._total, self.sym.q), self.sym.q, vs)
+            hv = ca.jtimes(ca.gradient(self.expression, self.sym.q), self.sym.q, vs)
             self._hvp_fn = ca.Function("cost_hvp", [self.sym.q, vs], [hv], ["q", "v"], ["hv"])
         vv = as_vector(v, self.robot.nq, "v")
         return np.array(self._hvp_fn(self._q(q), vv)).reshape(-1)
@@ -293,11 +294,11 @@ class DirectionalCost:
         for wi, u in zip(w, units):
             quad = ca.mtimes([ca.DM(u).T, lam, ca.DM(u)])
             expr += wi * (quad if exponent == 1 else 1.0 / quad)
-        self._cost = cost
+        self._nq = cost.robot.nq
         self._fn = cost.sym.function("directional", {"value": expr, "gradient": ca.gradient(expr, cost.sym.q)})
 
     def value(self, q: object) -> float:
-        return float(self._fn(self._cost._q(q))[0])
+        return float(self._fn(as_vector(q, self._nq, "q"))[0])
 
     def gradient(self, q: object) -> np.ndarray:
-        return np.array(self._fn(self._cost._q(q))[1]).reshape(-1)
+        return np.array(self._fn(as_vector(q, self._nq, "q"))[1]).reshape(-1)

@@ -43,7 +43,7 @@ class StateEvaluator:
         sym = cost.sym
         tool = sym.frame_placement(robot.tool_frame_id)
         ns, measures = arm_angle_expression(sym, elbow_points(robot))
-        total = cost._total
+        total = cost.expression
         outputs = {
             "R": tool.R,
             "p": tool.p,

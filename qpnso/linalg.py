@@ -1,0 +1,154 @@
+"""Small dense linear algebra of the control tick, compiled with Numba.
+
+A 1 kHz tick on a 7-DOF arm works on 6×7 and 7×7 matrices; there LAPACK's
+arithmetic takes well under a microsecond and Python's call overhead (several
+µs per NumPy or SciPy call) is the cost.  These kernels do the tick's few
+factorisations in scalar loops instead, compiled once per machine by Numba
+(``cache=True``: the machine code is kept beside the module).  Each is tested
+against NumPy/SciPy (tests/test_linalg.py).
+
+* :func:`least_norm_line` — Householder QR of ``Aᵀ`` for a full-row-rank
+  (n−1)×n ``A``: least-norm solution ``A⁺b``, unit null vector, and a lower
+  bound on ``σ_min(A)`` (the hierarchical QP's line fast path, :mod:`qpnso.hqp`);
+* :func:`cholesky` / :func:`cholesky_solve` — for symmetric positive-definite
+  matrices given by their upper triangle (Pinocchio's ``crba`` fills only that);
+* :func:`nullspace_part` — ``v − J⁺Jv``, the part of ``v`` in ``ker J``;
+* :func:`dynamically_consistent_projection` — ``Nᵀτ`` with
+  ``N = I − J̄J``, ``J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹`` (METHOD §2).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+REGULARIZATION = 1e-12
+"""Relative (to the trace) regularisation of ``JJᵀ`` and ``JA⁻¹Jᵀ``: a singular ``J`` gives a finite answer."""
+
+
+@njit(cache=True)
+def least_norm_line(A, b):  # type: ignore[no-untyped-def]
+    """``(x0, d, σ_floor)`` for ``A`` (n−1, n) and ``b`` (n−1,): ``x0 = A⁺b``, ``d`` a unit vector
+    with ``A d = 0`` and ``σ_floor = 1/‖R⁻¹‖_F ≤ σ_min(A)`` (conservative by at most √(n−1));
+    ``σ_floor = 0`` when ``A`` is singular.  Householder QR of ``Aᵀ = Q [R; 0]``."""
+    m, n = A.shape
+    R = A.T.copy()  # (n, m), reduced in place
+    V = np.zeros((m, n))  # reflector k: I − β_k v_k v_kᵀ acting on entries k…n−1
+    beta = np.zeros(m)
+    for k in range(m):
+        norm = 0.0
+        for i in range(k, n):
+            norm += R[i, k] * R[i, k]
+        norm = np.sqrt(norm)
+        if norm == 0.0:
+            return np.zeros(n), np.zeros(n), 0.0
+        for i in range(k, n):
+            V[k, i] = R[i, k]
+        V[k, k] += norm if R[k, k] >= 0.0 else -norm
+        vv = 0.0
+        for i in range(k, n):
+            vv += V[k, i] * V[k, i]
+        beta[k] = 2.0 / vv
+        for j in range(k, m):
+            dot = 0.0
+            for i in range(k, n):
+                dot += V[k, i] * R[i, j]
+            dot *= beta[k]
+            for i in range(k, n):
+                R[i, j] -= dot * V[k, i]
+    y = np.zeros(n)  # Rᵀ y = b (forward substitution), then x0 = Q [y; 0]
+    for i in range(m):
+        acc = b[i]
+        for j in range(i):
+            acc -= R[j, i] * y[j]
+        y[i] = acc / R[i, i]
+    d = np.zeros(n)
+    d[n - 1] = 1.0
+    for k in range(m - 1, -1, -1):  # Q = H_0 … H_{m−1}, applied right to left
+        dy, dd = 0.0, 0.0
+        for i in range(k, n):
+            dy += V[k, i] * y[i]
+            dd += V[k, i] * d[i]
+        for i in range(k, n):
+            y[i] -= beta[k] * dy * V[k, i]
+            d[i] -= beta[k] * dd * V[k, i]
+    frob = 0.0  # ‖R⁻¹‖_F², column by column (back substitution)
+    col = np.zeros(m)
+    for j in range(m):
+        for i in range(j, -1, -1):
+            acc = 1.0 if i == j else 0.0
+            for k in range(i + 1, j + 1):
+                acc -= R[i, k] * col[k]
+            col[i] = acc / R[i, i]
+            frob += col[i] * col[i]
+    return y, d, 1.0 / np.sqrt(frob)
+
+
+@njit(cache=True)
+def cholesky(M, regularization):  # type: ignore[no-untyped-def]
+    """Lower factor ``L`` with ``L Lᵀ = M + regularization·tr(M)·I`` from the upper triangle of
+    symmetric ``M``, and whether ``M`` was positive definite (else ``L`` is garbage)."""
+    n = M.shape[0]
+    shift = 0.0
+    for i in range(n):
+        shift += M[i, i]
+    shift *= regularization
+    L = np.zeros((n, n))
+    for j in range(n):
+        acc = M[j, j] + shift
+        for k in range(j):
+            acc -= L[j, k] * L[j, k]
+        if not acc > 0.0:
+            return L, False
+        L[j, j] = np.sqrt(acc)
+        for i in range(j + 1, n):
+            acc = M[j, i]  # upper triangle: M[i, j] = M[j, i]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / L[j, j]
+    return L, True
+
+
+@njit(cache=True)
+def cholesky_solve(L, b):  # type: ignore[no-untyped-def]
+    """``x`` with ``L Lᵀ x = b`` (``b`` a vector)."""
+    n = L.shape[0]
+    y = np.empty(n)
+    for i in range(n):
+        acc = b[i]
+        for k in range(i):
+            acc -= L[i, k] * y[k]
+        y[i] = acc / L[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = y[i]
+        for k in range(i + 1, n):
+            acc -= L[k, i] * y[k]
+        y[i] = acc / L[i, i]
+    return y
+
+
+@njit(cache=True)
+def nullspace_part(J, v):  # type: ignore[no-untyped-def]
+    """``v − J⁺Jv`` (``JJᵀ`` regularised by 1e-12 of its trace); ``v`` unchanged if that fails."""
+    jjt = J @ J.T
+    L, ok = cholesky(jjt, REGULARIZATION)
+    if not ok:
+        return v.copy()
+    return v - J.T @ cholesky_solve(L, J @ v)
+
+
+@njit(cache=True)
+def dynamically_consistent_projection(A, J, tau):  # type: ignore[no-untyped-def]
+    """``(Nᵀτ, ok)``: ``Nᵀτ = τ − Jᵀ Λ J A⁻¹ τ`` with ``Λ = (J A⁻¹ Jᵀ)⁻¹`` (METHOD §2); ``A`` by its
+    upper triangle.  Not positive definite (``ok`` False): ``τ`` itself, never NaN."""
+    LA, ok = cholesky(A, 0.0)
+    if not ok:
+        return tau.copy(), False
+    m, n = J.shape
+    W = np.empty((n, m))  # A⁻¹ Jᵀ
+    for k in range(m):
+        W[:, k] = cholesky_solve(LA, J[k].copy())
+    LL, ok = cholesky(J @ W, REGULARIZATION)
+    if not ok:
+        return tau.copy(), False
+    return tau - J.T @ cholesky_solve(LL, W.T @ tau), True

@@ -120,13 +120,20 @@ def assert_lexicographic(res, levels, lb, ub, xs_ref, tol_x=1e-6):
 
 
 # -------------------------------------------------------------------- tests
+FAST = [pytest.param(True, id="line"), pytest.param(False, id="cascade")]
+LINE_MESSAGE = "closed form"
+
+
+@pytest.mark.parametrize("fast", FAST)
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("seed", range(6))
-def test_two_levels_match_sequential_reference(backend, seed):
+def test_two_levels_match_sequential_reference(backend, seed, fast):
     levels, lb, ub = random_problem(seed)
-    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    res = HierarchicalQP(N, backend=backend, settings=QPSettings(line_fast_path=fast)).solve(levels, lb, ub)
     assert_lexicographic(res, levels, lb, ub, reference(levels, lb, ub))
     assert [lv.status for lv in res.levels] == [LevelStatus.SOLVED] * 2
+    exact = res.levels[0].residual < 1e-9  # the line of exact tool solutions meets the bounds
+    assert (LINE_MESSAGE in res.levels[0].message) == (fast and exact)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -135,6 +142,7 @@ def test_active_bounds_at_level_one(backend):
     res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
     active = np.isclose(res.levels[0].x, lb, atol=1e-7) | np.isclose(res.levels[0].x, ub, atol=1e-7)
     assert active.sum() >= 2 and res.levels[0].residual > 1e-2  # the bounds bite at level 1
+    assert LINE_MESSAGE not in res.levels[0].message  # the line misses the bounds: the general cascade
     assert_lexicographic(res, levels, lb, ub, reference(levels, lb, ub))
 
 
@@ -214,6 +222,7 @@ def test_near_singular_task_is_damped_in_closed_form():
     eps = 1e-2
     hqp = HierarchicalQP(N, backend="daqp", settings=QPSettings(damping_threshold=eps))
     res = hqp.solve([Level(A=J, b=b), Level(H=np.eye(N), g=rng.standard_normal(N))])
+    assert LINE_MESSAGE not in res.levels[0].message  # damped directions: no line fast path
     expected = V[:, :6] @ (sigma / np.maximum(sigma, eps) ** 2 * (U.T @ b))
     np.testing.assert_allclose(res.levels[0].x, expected, atol=1e-7)
     assert np.abs(res.levels[0].x).max() < np.linalg.norm(b) / eps
@@ -230,14 +239,16 @@ def test_weighted_overdetermined_task_closed_form(backend):
     np.testing.assert_allclose(res.x, x, atol=1e-7)
 
 
+@pytest.mark.parametrize("fast", FAST)
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_infeasible_soft_rows_take_slack(backend):
+def test_infeasible_soft_rows_take_slack(backend, fast):
     levels, lb, ub = random_problem(7)
     J = levels[0].A
     c = levels[0].A[0] + 0.5 * levels[0].A[1]  # a row of J: C x is fixed by level 1
     level2 = Level(H=np.eye(N), g=np.zeros(N), C=np.vstack([c, -c]), l=np.array([5.0, 5.0]),
                    u=np.array([np.inf, np.inf]), slack_weight=1e4)  # c·x >= 5 and c·x <= -5
-    res = HierarchicalQP(N, backend=backend).solve([Level(A=J, b=levels[0].b), level2], lb, ub)
+    hqp = HierarchicalQP(N, backend=backend, settings=QPSettings(line_fast_path=fast))
+    res = hqp.solve([Level(A=J, b=levels[0].b), level2], lb, ub)
     assert res.ok and np.all(np.isfinite(res.x))
     assert np.all(res.levels[1].slack > 1.0)
     np.testing.assert_allclose(res.levels[1].slack, np.maximum(level2.l - level2.C @ res.x, 0), atol=1e-9)
@@ -260,11 +271,12 @@ def test_soft_slack_of_a_higher_level_does_not_grow(backend):
     np.testing.assert_allclose(res.x, reference(levels, lb, ub)[-1], atol=1e-6)
 
 
+@pytest.mark.parametrize("fast", FAST)
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_hard_infeasible_level_two_falls_back_to_level_one(backend):
+def test_hard_infeasible_level_two_falls_back_to_level_one(backend, fast):
     levels, lb, ub = random_problem(1)
     bad = Level(H=np.eye(N), C=np.eye(N)[:1], l=np.array([5.0]), u=np.array([6.0]))  # x0 >= 5 > ub
-    res = HierarchicalQP(N, backend=backend).solve([levels[0], bad], lb, ub)
+    res = HierarchicalQP(N, backend=backend, settings=QPSettings(line_fast_path=fast)).solve([levels[0], bad], lb, ub)
     assert not res.ok and res.failed_level == 1
     assert res.levels[1].status is not LevelStatus.SOLVED and "level 2" in res.status
     assert np.all(np.isfinite(res.x))
@@ -296,10 +308,11 @@ def _sequence(T: int, seed: int = 0):
                       slack_weight=levels[1].slack_weight)], lb, ub)
 
 
-def test_warm_started_proxsuite_matches_cold_and_daqp():
-    warm = HierarchicalQP(N)
-    cold = HierarchicalQP(N, settings=QPSettings(warm_start=False))
-    exact = HierarchicalQP(N, backend="daqp")
+@pytest.mark.parametrize("fast", FAST)
+def test_warm_started_proxsuite_matches_cold_and_daqp(fast):
+    warm = HierarchicalQP(N, settings=QPSettings(line_fast_path=fast))
+    cold = HierarchicalQP(N, settings=QPSettings(warm_start=False, line_fast_path=fast))
+    exact = HierarchicalQP(N, backend="daqp", settings=QPSettings(line_fast_path=fast))
     for levels, lb, ub in _sequence(60):
         xw, xc, xe = (h.solve(levels, lb, ub) for h in (warm, cold, exact))
         assert xw.ok and xc.ok and xe.ok
@@ -308,7 +321,7 @@ def test_warm_started_proxsuite_matches_cold_and_daqp():
 
 
 def test_qp_objects_created_once_per_level_and_shape():
-    hqp = HierarchicalQP(N)
+    hqp = HierarchicalQP(N, settings=QPSettings(line_fast_path=False))
     seq = list(_sequence(100))
     hqp.solve(*seq[0])
     assert hqp.stats.qp_created == 2
@@ -349,12 +362,12 @@ def test_build_level_qp_is_the_level_objective():
     np.testing.assert_allclose(vals, vals[0], atol=1e-9)
 
 
-def _controller_ticks(T: int, seed: int = 21):
+def _controller_ticks(T: int, seed: int = 21, v_scale: float = 0.4):
     """Controller-like ticks: 6×7 tool Jacobian, soft 1×7 elbow row (ρ = 1e6), tight finite joint
     velocity bounds, level 2 in the three forms the controller uses."""
     rng = np.random.default_rng(seed)
     J0, dJ = rng.standard_normal((6, N)), 0.1 * rng.standard_normal((6, N))
-    v0, row = 0.4 * rng.standard_normal(6), rng.standard_normal((1, N))
+    v0, row = v_scale * rng.standard_normal(6), rng.standard_normal((1, N))
     lb, ub = -0.35 * np.ones(N), 0.3 * np.ones(N)
     for t in range(T):
         s = np.sin(0.3 * t)
@@ -365,18 +378,22 @@ def _controller_ticks(T: int, seed: int = 21):
         yield [Level(A=J, b=v), second], lb, ub
 
 
-def test_controller_problem_fast_form_matches_reference():
+@pytest.mark.parametrize("fast", FAST)
+def test_controller_problem_fast_form_matches_reference(fast):
     """The per-tick problem of the controller: level 2 is solved in the one-direction null-space
-    basis (fast form), warm-started, with and without input checks; answers match the
-    independent equality-form reference, the tool task's residual is preserved, bounds bind."""
-    hqp = HierarchicalQP(N, settings=QPSettings())
-    trusted = HierarchicalQP(N)
-    n_active = 0
+    basis (fast form) — on the line of level 1's exact solutions or through the general cascade —
+    warm-started, with and without input checks; answers match the independent equality-form
+    reference, the tool task's residual is preserved, bounds bind."""
+    settings = QPSettings(line_fast_path=fast)
+    hqp = HierarchicalQP(N, settings=settings)
+    trusted = HierarchicalQP(N, settings=settings)
+    n_active = n_line = 0
     for levels, lb, ub in _controller_ticks(24):
         res = hqp.solve(levels, lb, ub)
         assert_lexicographic(res, levels, lb, ub, _banded_reference(levels, lb, ub))
         np.testing.assert_allclose(trusted.solve(levels, lb, ub, check=False).x, res.x, atol=1e-9)
         n_active += int(np.any(np.isclose(res.x, lb, atol=1e-7) | np.isclose(res.x, ub, atol=1e-7)))
+        n_line += int(LINE_MESSAGE in res.levels[0].message)
         if levels[1].slack_weight is not None:
             np.testing.assert_allclose(res.levels[1].slack, _soft_violation(levels[1], res.x), atol=1e-9)
         c0 = Cascade.start(lb, ub)
@@ -384,8 +401,37 @@ def test_controller_problem_fast_form_matches_reference():
                              hqp.settings)
         assert c1.Z.shape == (N, 1)  # level 2 has one free variable (plus its slack)
     assert n_active >= 12  # the bounds bite on most ticks
-    # level 1, and level 2 as (z, σ) with 8 rows or as z with the 7 bound rows (A = I and A = row alike)
-    assert hqp.stats.qp_created == 3 and hqp.stats.failures == 0
+    assert hqp.stats.failures == 0
+    # the tool asks more than the bounds allow: level 1, and level 2 as (z, σ) with 8 rows or as z
+    # with the 7 bound rows (A = I and A = row alike), in the general cascade
+    assert n_line == 0 and hqp.stats.qp_created == 3
+
+
+@pytest.mark.parametrize("seed", [21, 22, 23])
+def test_line_fast_path_matches_the_general_cascade(seed):
+    """Controller-like ticks whose tool motion the bounds allow: the line form is taken, gives the
+    reference's answer like the general cascade and DAQP on the line, its level 1 is the least-norm
+    exact solution, and no QP object is created once every shape has been seen."""
+    line, general = HierarchicalQP(N), HierarchicalQP(N, settings=QPSettings(line_fast_path=False))
+    exact = HierarchicalQP(N, backend="daqp")
+    ticks = list(_controller_ticks(30, seed=seed, v_scale=0.1))
+    n_line = 0
+    for levels, lb, ub in ticks:
+        a, b, c = line.solve(levels, lb, ub), general.solve(levels, lb, ub), exact.solve(levels, lb, ub)
+        assert a.ok and b.ok and c.ok, (a.status, b.status, c.status)
+        np.testing.assert_allclose(a.x, b.x, atol=1e-6)
+        np.testing.assert_allclose(a.x, c.x, atol=1e-6)
+        assert_lexicographic(a, levels, lb, ub, _banded_reference(levels, lb, ub))
+        if LINE_MESSAGE in a.levels[0].message:
+            n_line += 1
+            x_min = np.linalg.pinv(levels[0].A) @ levels[0].b
+            if np.all(x_min >= lb) and np.all(x_min <= ub):
+                np.testing.assert_allclose(a.levels[0].x, x_min, atol=1e-12)
+    assert n_line >= 10  # (the others: a bound cuts the line, the general cascade runs)
+    created = line.stats.qp_created
+    for levels, lb, ub in ticks:
+        line.solve(levels, lb, ub)
+    assert line.stats.qp_created == created <= 2 + 3  # line shapes: (t, σ) with one row, t alone
 
 
 def _banded_reference(levels, lb, ub):

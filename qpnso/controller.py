@@ -27,13 +27,13 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg.lapack import dpotrf as _dpotrf, dpotrs as _dpotrs
 
 from qpnso.costs import CostModel, CostWeights
 from qpnso.errors import ConfigError, QpnsoError
 from qpnso.hqp import HierarchicalQP, Level, QPSettings
 from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.intervals import Interval, continuity_interval
+from qpnso.linalg import dynamically_consistent_projection
 from qpnso.robot import Robot, as_vector
 from qpnso.rom import ElbowConfig, clip_rom, stiffness
 from qpnso.state import StateEvaluator, TickState
@@ -44,6 +44,17 @@ the tool's motion) is flagged ``TOOL_LIMITED``."""
 ELBOW_SLACK_REPORTED = 1e-3
 """rad/s: an elbow row violated by more than this is flagged ``ELBOW_SLACK``.  A soft
 row held by the cost is always violated by about (cost force)/(2·slack_weight) ≈ 1e-5."""
+
+
+TOOL_MOVED_TOL = 1e-6
+"""m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
+cached continuity interval (its ends move by ~1e-6 rad at most, against a safety margin of degrees)."""
+TWO_PI = 2.0 * math.pi
+
+
+def _pose_vector(state: TickState) -> np.ndarray:
+    """Tool position (m) and rotation-matrix entries in one (12,) vector, for cheap comparisons."""
+    return np.concatenate((state.tool_position, state.tool_rotation.ravel()))
 
 
 def _norm(v: np.ndarray) -> float:
@@ -213,6 +224,8 @@ class Controller:
         self.evaluate = StateEvaluator(self.cost, compile=cfg.compile)
         self.elbow_config = cfg.elbow()
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
+        self._q_low, self._q_high = robot.q_min - 1e-9, robot.q_max + 1e-9  # limits as checked (rad)
+        self._dq_max, self._dq_min = robot.dq_max.copy(), -robot.dq_max
         self.strategy = make_strategy(cfg.strategy, self)
         self._reset_done = False
 
@@ -283,8 +296,7 @@ class Controller:
     def _check_input(self, q: object) -> tuple[np.ndarray, Status]:
         """Shape/NaN → InputError; outside the limits is recovered (flagged), not refused."""
         qv = as_vector(q, self.robot.nq, "q")
-        r = self.robot
-        if (qv < r.q_min - 1e-9).any() or (qv > r.q_max + 1e-9).any():
+        if (qv < self._q_low).any() or (qv > self._q_high).any():
             return qv, Status.Q_OUT_OF_LIMITS
         return qv, Status.OK
 
@@ -309,9 +321,12 @@ class Controller:
         """
         gain = self.config.joint_limit_gain
         r = self.robot
-        lb = np.clip(-gain * (q - r.q_min), -r.dq_max, r.dq_max)
-        ub = np.clip(gain * (r.q_max - q), -r.dq_max, r.dq_max)
-        return lb, np.maximum(ub, lb)
+        lb = gain * (r.q_min - q)
+        ub = gain * (r.q_max - q)
+        for side in (lb, ub):  # clip to ±dq_max in place (np.clip costs more than both calls)
+            np.minimum(side, self._dq_max, out=side)
+            np.maximum(side, self._dq_min, out=side)
+        return lb, np.maximum(ub, lb, out=ub)
 
     def _elbow(self, state: TickState) -> ElbowState:
         """Arm angle (unwrapped), continuity interval, ROM_t [E 10], [E 11] and K(ns) [E 6].
@@ -349,7 +364,7 @@ class Controller:
         if not fresh:
             try:
                 self._interval = continuity_interval(self.robot, state.q)
-                self._interval_pose = (state.tool_position, state.tool_rotation)
+                self._interval_pose = _pose_vector(state)
                 self._interval_age = 0
             except QpnsoError:
                 stale = True
@@ -357,18 +372,20 @@ class Controller:
             return Interval(ns - np.pi, ns + np.pi, True), True
         return self._shift(self._interval, ns), stale
 
-    def _tool_moved(self, state: TickState, tol: float = 1e-9) -> bool:
-        """Whether the tool pose differs from the one the cached interval was computed at."""
-        p, rot = self._interval_pose
-        return bool(np.abs(state.tool_position - p).max() > tol or np.abs(state.tool_rotation - rot).max() > tol)
+    def _tool_moved(self, state: TickState) -> bool:
+        """Whether the tool pose differs, by more than ``TOOL_MOVED_TOL`` (m, and rad-sized rotation
+        entries), from the one the cached interval was computed at."""
+        return bool(np.abs(_pose_vector(state) - self._interval_pose).max() > TOOL_MOVED_TOL)
 
     @staticmethod
     def _shift(interval: Interval, ns: float) -> Interval:
         """The arc moved by whole turns to be expressed around ``ns`` (a full circle is centred on it)."""
         if interval.full_circle:
-            return Interval(ns - np.pi, ns + np.pi, True)
-        k = np.round((ns - 0.5 * (interval.lo + interval.hi)) / (2 * np.pi))
-        return Interval(interval.lo + 2 * np.pi * k, interval.hi + 2 * np.pi * k, False)
+            return Interval(ns - math.pi, ns + math.pi, True)
+        k = round((ns - 0.5 * (interval.lo + interval.hi)) / TWO_PI)
+        if k == 0:
+            return interval
+        return Interval(interval.lo + TWO_PI * k, interval.hi + TWO_PI * k, False)
 
     def _command_velocity(self, result) -> tuple[np.ndarray, Status, str]:
         """The QP's answer, or the safe fallback: level-1 solution, else zero."""
@@ -387,25 +404,13 @@ class Controller:
         return fallback, Status.QP_FAILED, f"QP failed ({result.status}): tool held, no null-space motion"
 
     def _torque(self, state: TickState, dq_cmd: np.ndarray, dq_meas: np.ndarray, elbow: ElbowState) -> np.ndarray:
-        """τ = g(q) + Nᵀ τ_null with N = I − J̄J, J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ (METHOD §2, §7).
-
-        Cholesky factors (LAPACK) of A and of JA⁻¹Jᵀ (regularised by 1e-12 of its
-        trace, so a singular J gives a finite torque).
-        """
+        """τ = g(q) + Nᵀ τ_null with N = I − J̄J, J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ (METHOD §2, §7;
+        :func:`qpnso.linalg.dynamically_consistent_projection`; a singular A gives no projection, never NaN)."""
         r = self.robot
         tau_null = self.strategy.nullspace_torque(state, elbow, dq_cmd, dq_meas)
         g = pin.computeGeneralizedGravity(r.model, r.data, state.q)
-        a = pin.crba(r.model, r.data, state.q)  # upper triangle filled: all dpotrf reads
-        jac = state.jacobian
-        chol_a, info = _dpotrf(a, lower=0)
-        a_inv_jt, _ = _dpotrs(chol_a, jac.T, lower=0)
-        lam_inv = jac @ a_inv_jt
-        lam_inv.flat[::7] += 1e-12 * lam_inv.trace()
-        chol_l, info_l = _dpotrf(lam_inv, lower=0)
-        if info or info_l:
-            return g + tau_null  # not positive definite: no projection rather than NaN
-        f, _ = _dpotrs(chol_l, a_inv_jt.T @ tau_null, lower=0)  # J̄ᵀ τ_null = Λ (A⁻¹Jᵀ)ᵀ τ_null
-        return g + tau_null - jac.T @ f
+        a = pin.crba(r.model, r.data, state.q)  # upper triangle filled: all the projection reads
+        return g + dynamically_consistent_projection(a, state.jacobian, tau_null)[0]
 
     def __repr__(self) -> str:
         return f"Controller({self.robot.name!r}, strategy={self.config.strategy!r}, dt={self.config.dt})"

@@ -17,10 +17,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.linalg.lapack import dposv as _dposv
 
 from qpnso.errors import ConfigError, QpnsoError
 from qpnso.hqp import Level
+from qpnso.linalg import nullspace_part
 
 if TYPE_CHECKING:
     from qpnso.controller import Controller, ElbowState
@@ -78,14 +78,6 @@ class FixedPosture(Strategy):
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         return self.cfg.posture_stiffness * (self.q_ref - state.q) - self.cfg.joint_damping * dq_meas
-
-
-def nullspace_part(jac: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``v − J⁺Jv``: the part of ``v`` in the null space of ``J`` (JJᵀ regularised by 1e-12 of its trace)."""
-    jjt = jac @ jac.T
-    jjt.flat[:: jjt.shape[0] + 1] += 1e-12 * jjt.trace()
-    x, info = _dposv(jjt, jac @ v)[1:]
-    return v - jac.T @ x if info == 0 else v
 
 
 def arm_angle_step(state: "TickState", delta_ns: float) -> np.ndarray:

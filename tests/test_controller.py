@@ -303,15 +303,3 @@ def test_tool_motion_beyond_the_joint_speeds_is_flagged(lwr_qp: Controller) -> N
     assert cmd.status & Status.TOOL_LIMITED and cmd.ok
     assert np.all(np.abs(cmd.dq) <= robot.dq_max + 1e-9)
     assert (robot.jacobian(q0) @ cmd.dq)[0] > 0.1  # still moving the tool the right way
-
-
-def test_nullspace_part_is_the_projection_on_ker_j(lwr, rng) -> None:
-    """v − J⁺Jv: in ker J, and v minus it lies in range Jᵀ (checked with NumPy's pinv)."""
-    from qpnso.strategies import nullspace_part
-
-    jac = lwr.jacobian(lwr.random_q(rng, margin=0.2))
-    v = rng.normal(size=7)
-    part = nullspace_part(jac, v)
-    # (JJᵀ is regularised by 1e-12 of its trace: ~1e-9 relative at σ_min ≈ 0.1)
-    assert np.abs(jac @ part).max() < 1e-8
-    assert np.allclose(part, v - np.linalg.pinv(jac) @ (jac @ v), atol=1e-8)

@@ -40,8 +40,10 @@ in ``t`` (plus its slacks) with the bounds as a box on ``t`` — the same QP tha
 :func:`build_level_qp` builds with ``Z = d``, solved by the same back end
 (ProxSuite, persistent and warm-started).  Whenever a bound cuts the line (the
 bounds bind the tool task), the task is near-singular, or there are more than
-two levels, the general cascade below runs.  Measured: the same answers as the
-general cascade (tests), a third of its time.
+two levels, the general cascade below runs.  The small factorisations are
+Numba kernels (:mod:`qpnso.linalg`).  Same answers as the general cascade
+(tests); on 300 recorded controller ticks (``solve(check=False)``, interleaved
+runs) 77–95 µs median per solve against 195–223 µs for the general cascade.
 
 The Hessian carries a tie-break ``½ μ ‖z‖²`` only in the directions that the
 level's own task leaves free (``μ = QPSettings.regularization``: 1e-7 for the

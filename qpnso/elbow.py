@@ -28,8 +28,10 @@ Only atan2/acos forms are used (no half-angle formulas).
 
 from __future__ import annotations
 
+import itertools
 import math
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass
 import casadi as ca
 import numpy as np
@@ -289,11 +291,14 @@ def branch(robot: Robot, q: object) -> Branch:
 
 
 def _branch_of(qv: np.ndarray) -> Branch:
-    values = [float(qv[k]) for k in (1, 3, 5)]
-    for k, v in zip((2, 4, 6), values):
-        if v == 0.0:
-            raise SingularityError(f"joint {k} is exactly 0: the configuration branch is undefined")
-    return Branch(*(1 if v > 0 else -1 for v in values))
+    v = qv.tolist()
+    for k in (1, 3, 5):
+        if v[k] == 0.0:
+            raise SingularityError(f"joint {k + 1} is exactly 0: the configuration branch is undefined")
+    return _BRANCHES[(v[1] > 0, v[3] > 0, v[5] > 0)]
+
+
+_BRANCHES = {tuple(s > 0 for s in signs): Branch(*signs) for signs in itertools.product((1, -1), repeat=3)}
 
 
 # ------------------------------------------------------------ S-R-S geometry
@@ -307,7 +312,11 @@ class SrsGeometry:
     7) or ``ey`` (joints 2, 4, 6).  ``upper_arm_m``/``forearm_m`` are the
     shoulder–elbow and elbow–wrist lengths, ``p_s`` the shoulder centre,
     ``wrist_in_tool`` the wrist centre in the tool frame, ``tool_rotation0``
-    the tool orientation at ``q = 0``.
+    the tool orientation at ``q = 0``.  Derived, for the closed form:
+    ``shoulder_from_world`` (3×4, ``[Fᵀ | −Fᵀ·p_s]``) maps world points to the
+    shoulder frame (canonical axes), ``tool_to_wrist`` (4×4) is the wrist frame
+    (canonical axes at ``q = 0``, origin at the wrist centre) in the tool frame, and
+    ``vertical`` the world vertical in canonical coordinates.
     """
 
     frame: np.ndarray
@@ -318,6 +327,9 @@ class SrsGeometry:
     wrist_in_tool: np.ndarray
     tool_rotation0: np.ndarray
     points: ElbowPoints
+    shoulder_from_world: np.ndarray
+    tool_to_wrist: np.ndarray
+    vertical: tuple[float, float, float]
 
 
 def _line_point(origin: np.ndarray, ez: np.ndarray, o: np.ndarray, axis: np.ndarray, k: int, name: str) -> np.ndarray:
@@ -368,10 +380,14 @@ def _build_srs_geometry(robot: Robot) -> SrsGeometry:
         2, 4, 6,
         *(tuple(float(x) for x in data.oMi[j].actInv(p)) for j, p in ((2, p_s), (4, p_e), (6, p_w))),
     )
+    wrist_in_tool = o_t.rotation.T @ (p_w - o_t.translation)
+    tool_to_wrist = np.eye(4)
+    tool_to_wrist[:3, :3], tool_to_wrist[:3, 3] = o_t.rotation.T @ frame, wrist_in_tool
     return SrsGeometry(
         frame=frame, axis_sign=axis_sign, upper_arm_m=upper, forearm_m=fore, p_s=p_s,
-        wrist_in_tool=o_t.rotation.T @ (p_w - o_t.translation), tool_rotation0=o_t.rotation.copy(),
-        points=points,
+        wrist_in_tool=wrist_in_tool, tool_rotation0=o_t.rotation.copy(), points=points,
+        shoulder_from_world=np.column_stack([frame.T, -frame.T @ p_s]), tool_to_wrist=tool_to_wrist,
+        vertical=tuple(float(x) for x in frame.T @ Z0),
     )
 
 
@@ -409,11 +425,6 @@ def as_pose(pose: object) -> pin.SE3:
     return pin.SE3(rot.copy(), h[:3, 3].copy())
 
 
-def _ry(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 @dataclass(frozen=True)
 class SelfMotion:
     """Every joint as a closed-form function of the arm angle (pose and branch held).
@@ -444,17 +455,44 @@ class SelfMotion:
         return q[0] if arr.ndim == 0 else q
 
 
-def _rotation_coefficients(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[np.ndarray, float]:
-    """``R03`` and ``R47`` (canonical frame) as affine maps of ``(cos ns, sin ns)``.
+_Vec = tuple[float, float, float]
 
-    Returns ``K`` of shape (2, 3, 3, 3) — ``K[0]``: R03, ``K[1]``: R47; second
-    index 0: constant, 1: cos, 2: sin coefficient matrix — and joint 4 (rad).  Raises UnreachableError or
+
+def _scaled(k: float, v: Sequence[float]) -> _Vec:
+    return (k * v[0], k * v[1], k * v[2])
+
+
+def _lin(a: float, v: Sequence[float], b: float, w: Sequence[float]) -> _Vec:
+    return (a * v[0] + b * w[0], a * v[1] + b * w[1], a * v[2] + b * w[2])
+
+
+def _r03_transposed(v: Sequence[float], sin_a: float, cos_a: float, k_x: float, k_y: float) -> tuple[_Vec, _Vec, _Vec]:
+    """``R03ᵀ·v`` for ``v = (p, q, r)`` given in the arm-angle frame ``(u_sin, u_cos, u)``.
+
+    Each of the three components as its ``(sin ns, cos ns, 1)`` coefficients:
+    ``R03·ez = e1 = sin_a·(sin ns·u_sin + cos ns·u_cos) + cos_a·u`` (upper arm),
+    ``R03·ex = k_x·e1 + k_y·u`` (= (e2 − e1 cos q4)/(σ4 sin q4), e2 = (d·u − l1·e1)/l2),
+    ``R03·ey = e1 × R03·ex = k_y·(e1 × u)``.
+    """
+    p, q, r = v
+    e = (sin_a * p, sin_a * q, cos_a * r)
+    return (k_x * e[0], k_x * e[1], k_x * e[2] + k_y * r), (-k_y * e[1], k_y * e[0], 0.0), e
+
+
+def _rotation_coefficients(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[tuple, tuple, float]:
+    """Last column and last row of ``R03`` and ``R47`` (canonical frame), affine in ``(sin ns, cos ns, 1)``.
+
+    Returns ``(r03, r47, q4)``: each block is ``(col, row)`` with ``col[i]`` the
+    coefficients ``(sin, cos, 1)`` of ``M[i, 2]`` and ``row[i]`` those of
+    ``M[2, i]`` — all that the Z-Y-Z angles need — and joint 4 (rad).
+    ``R47 = R4ᵀ·R03ᵀ·T`` (T = R07, R4 = Ry(σ4·q4)).  Plain floats: NumPy's call
+    overhead would dominate these few products.  Raises UnreachableError or
     SingularityError (wrist on the vertical, straight elbow).
     """
     l1, l2 = g.upper_arm_m, g.forearm_m
-    rot = pose.rotation
-    p_sw = pose.translation + rot @ g.wrist_in_tool - g.p_s
-    dist = math.sqrt(_dot(p_sw, p_sw))
+    a = g.shoulder_from_world @ pose.homogeneous @ g.tool_to_wrist  # [T | p_sw] in the shoulder frame
+    p = a[:, 3].tolist()
+    dist = math.sqrt(_dot(p, p))
     if dist > l1 + l2 or dist < abs(l1 - l2):
         gap = dist - (l1 + l2) if dist > l1 + l2 else abs(l1 - l2) - dist
         raise UnreachableError(
@@ -463,63 +501,68 @@ def _rotation_coefficients(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[np
         )
     cos4 = (dist * dist - l1 * l1 - l2 * l2) / (2 * l1 * l2)
     sin4 = b.s4 * math.sqrt(max(0.0, 1.0 - cos4 * cos4))
-    u = p_sw / dist
-    z_x = _cross(Z0, u)
+    u = _scaled(1.0 / dist, p)
+    z_x = _tcross(g.vertical, u)
     n_zx = math.sqrt(_dot(z_x, z_x))
     if n_zx < 1e-12:
         raise SingularityError("arm angle undefined: the wrist centre is on the vertical through the shoulder")
     if abs(sin4) < 1e-12:
         raise SingularityError("arm angle undefined: the elbow is straight (joint 4 = 0) for this pose")
-    u_sin = z_x / n_zx
-    u_cos = _cross(u, u_sin)
+    u_sin = _scaled(1.0 / n_zx, z_x)
+    u_cos = _tcross(u, u_sin)
     cos_a = (l1 * l1 + dist * dist - l2 * l2) / (2 * l1 * dist)
     sin_a = math.sqrt(max(0.0, 1.0 - cos_a * cos_a))
-    # upper-arm direction e1 = cos_a·u + sin_a·(cos ns·u_cos + sin ns·u_sin); rows: const, cos, sin
-    e = np.array([cos_a * u, sin_a * u_cos, sin_a * u_sin]) @ g.frame  # canonical coordinates
-    u_c = u @ g.frame
-    skew = np.array([[0.0, -u_c[2], u_c[1]], [u_c[2], 0.0, -u_c[0]], [-u_c[1], u_c[0], 0.0]])
-    scale = 1.0 / (g.axis_sign[3] * sin4)
-    col_x = ((-(l1 / l2) - cos4) * scale) * e  # R03·ex = (e2 − e1 cos q4)/(σ4 sin q4), e2 = (d·u − l1·e1)/l2
-    col_x[0] += (dist / l2) * scale * u_c
-    col_y = ((dist / l2) * scale) * (e @ skew)  # R03·ey = e1 × R03·ex = (d/l2)(e1 × u)/(σ4 sin q4)
-    k = np.empty((2, 3, 3, 3))
-    k[0] = np.array([col_x, col_y, e]).transpose(1, 2, 0)  # k[0, i] = [R03·ex, R03·ey, R03·ez], coefficient i
-    q4 = b.s4 * math.acos(max(-1.0, min(1.0, cos4)))
-    target = g.frame.T @ rot @ g.tool_rotation0.T @ g.frame
-    np.matmul((k[0] @ _ry(g.axis_sign[3] * q4)).transpose(0, 2, 1), target, out=k[1])  # R47 = (R03·R4)ᵀ·T
-    return k, q4
+    c4 = max(-1.0, min(1.0, cos4))
+    s4 = float(g.axis_sign[3]) * sin4  # R4 = Ry(σ4·q4): cosine c4, sine s4
+    k = (sin_a, cos_a, (-(l1 / l2) - cos4) / s4, (dist / l2) / s4)  # sin_a, cos_a, k_x, k_y
+    col03 = tuple((sin_a * u_sin[i], sin_a * u_cos[i], cos_a * u[i]) for i in range(3))  # R03·ez = e1
+    row03 = _r03_transposed((u_sin[2], u_cos[2], u[2]), *k)  # R03ᵀ·ez
+    t_b = (a[:, :3].T @ np.array([u_sin, u_cos, u]).T).tolist()  # T's columns in the arm-angle frame
+    x, y, e = _r03_transposed(t_b[2], *k)  # R03ᵀ·t2
+    col47 = (_lin(c4, x, -s4, e), y, _lin(s4, x, c4, e))  # R4ᵀ·R03ᵀ·t2
+    kappa, k_u = s4 * k[2] + c4, s4 * k[3]  # R03·R4·ez = κ·e1 + s4·k_y·u
+    row47 = tuple((kappa * sin_a * p, kappa * sin_a * q, (kappa * cos_a + k_u) * r) for p, q, r in t_b)
+    q4 = b.s4 * math.acos(c4)
+    return (col03, row03), (col47, row47), q4
 
 
-# Z-Y-Z extraction, Rz(σa·qa)·Ry(σb·qb)·Rz(σc·qc) = M:  qa = σa·atan2(sb·M12, sb·M02),
-# qb = s·acos(M22), qc = σc·atan2(sb·M21, −sb·M20), sb = s·σb the sign of the middle Euler angle.
-# Rows: joints 1…7 as (block 0: R03 / 1: R47, entry i, entry j, multiplier key) for num and den;
-# multiplier keys: 0 → 0, 1 → +sb, 2 → −sb, 3 → 1.
-_NUM_ROWS = np.array([(0, 1, 2, 1), (0, 0, 0, 0), (0, 2, 1, 1), (0, 0, 0, 0), (1, 1, 2, 1), (0, 0, 0, 0), (1, 2, 1, 1)])
-_DEN_ROWS = np.array([(0, 0, 2, 1), (0, 2, 2, 3), (0, 2, 0, 2), (0, 0, 0, 0), (1, 0, 2, 1), (1, 2, 2, 3), (1, 2, 0, 2)])
+_ZERO = (0.0, 0.0, 0.0)
+
+
+def _zyz_rows(col: tuple, row: tuple, sb: float) -> tuple[list[tuple], list[tuple]]:
+    """``num`` and ``den`` rows of the three Z-Y-Z angles of ``M = Rz(σa·qa)·Ry(σb·qb)·Rz(σc·qc)``.
+
+    ``qa = σa·atan2(sb·M12, sb·M02)``, ``qb = s·acos(M22)``,
+    ``qc = σc·atan2(sb·M21, −sb·M20)``, ``sb = s·σb`` the sign of the middle Euler angle.
+    """
+    return [_scaled(sb, col[1]), _ZERO, _scaled(sb, row[1])], [_scaled(sb, col[0]), col[2], _scaled(-sb, row[0])]
+
+
 _KIND = np.array([_TAN, _COS, _TAN, _CONST, _TAN, _COS, _TAN])
-_SIN_COS_CONST = np.array([2, 1, 0])
+_BRANCH_TABLES: dict[tuple, tuple[float, float, np.ndarray]] = {}
 
 
-_ROWS = np.vstack([_NUM_ROWS, _DEN_ROWS])
-_BRANCH_TABLES: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-
-
-def _branch_table(g: SrsGeometry, b: Branch) -> tuple[np.ndarray, np.ndarray]:
-    """Row multipliers (14, 1) for num/den and joint signs (7,) of a geometry and branch (cached)."""
-    key = (tuple(g.axis_sign), b.as_tuple())
+def _branch_table(g: SrsGeometry, b: Branch) -> tuple[float, float, np.ndarray]:
+    """Middle-angle signs ``sb`` of R03 and R47 and joint signs (7,) of a geometry and branch (cached)."""
+    key = (g.axis_sign.tobytes(), b.s2, b.s4, b.s6)
     if key not in _BRANCH_TABLES:
         s_mid = np.array([b.s2, b.s2, b.s2, b.s4, b.s6, b.s6, b.s6], dtype=float)
-        sb = np.tile(s_mid * g.axis_sign[[1, 1, 1, 3, 5, 5, 5]], 2)
-        mult = np.stack([np.zeros(14), sb, -sb, np.ones(14)])[_ROWS[:, 3], np.arange(14)]
-        _BRANCH_TABLES[key] = (mult[:, None], np.where(_KIND == _COS, s_mid, g.axis_sign))
+        sign = np.where(_KIND == _COS, s_mid, g.axis_sign)
+        _BRANCH_TABLES[key] = (float(b.s2 * g.axis_sign[1]), float(b.s6 * g.axis_sign[5]), sign)
     return _BRANCH_TABLES[key]
 
 
+def _self_motion_rows(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[list[tuple], list[tuple], np.ndarray, float]:
+    """:class:`SelfMotion`'s ``num``, ``den`` (7 rows of plain floats), ``sign`` and ``q4``."""
+    r03, r47, q4 = _rotation_coefficients(g, pose, b)
+    sb03, sb47, sign = _branch_table(g, b)
+    (num03, den03), (num47, den47) = _zyz_rows(*r03, sb03), _zyz_rows(*r47, sb47)
+    return num03 + [_ZERO] + num47, den03 + [_ZERO] + den47, sign, q4
+
+
 def _self_motion(g: SrsGeometry, pose: pin.SE3, b: Branch) -> SelfMotion:
-    k, q4 = _rotation_coefficients(g, pose, b)
-    mult, sign = _branch_table(g, b)
-    rows = k[_ROWS[:, 0:1], _SIN_COS_CONST, _ROWS[:, 1:2], _ROWS[:, 2:3]] * mult
-    return SelfMotion(rows[:7], rows[7:], _KIND, sign, q4, b)
+    num, den, sign, q4 = _self_motion_rows(g, pose, b)
+    return SelfMotion(np.array(num), np.array(den), _KIND, sign, q4, b)
 
 
 def self_motion(robot: Robot, pose: object, branch_: object) -> SelfMotion:

@@ -37,10 +37,12 @@ import pinocchio as pin
 
 from qpnso.elbow import (
     SelfMotion,
+    _CONST,
+    _KIND,
     _TAN,
     _branch_of,
     _checked,
-    _self_motion,
+    _self_motion_rows,
     _status_after_fk,
     srs_geometry,
     arm_angle,
@@ -60,7 +62,6 @@ SINGULAR_TOL = 1e-12
 _MERGE_TOL = 1e-12
 _FEASIBLE_TOL = 1e-10
 _ALL_JOINTS = np.arange(7)
-_PLUS_MINUS = np.array([[1.0], [-1.0]])
 
 
 @dataclass(frozen=True)
@@ -115,79 +116,88 @@ def wrap(angle):  # type: ignore[no-untyped-def]
 _BOUNDS = ("min", "max")
 
 
-@dataclass(frozen=True)
-class _RowTable:
-    """Limit rows that can bind for one robot's limits and one branch (cached).
+@dataclass(frozen=True, slots=True)
+class _LimitRow:
+    """One joint limit that can bind, for one robot's limits and one branch.
 
-    ``joint``/``bound`` (0 min, 1 max) per row, ``tangent`` mask, ``cos_phi``,
-    ``sin_phi`` (φ = sign·θ_limit), ``cz`` = (0, 0, cos θ_limit) and
-    ``rate_sign``: dθ/dns has the sign of ``rate_sign · d(residual)/dns`` at a genuine root.
+    ``is_max``: the bound is the upper one; ``cos_phi``/``sin_phi`` of φ = sign·θ_limit (tangent
+    type); ``cos_limit`` = cos θ_limit (cosine type); ``rate_sign``: dθ/dns has
+    the sign of ``rate_sign · d(residual)/dns`` at a genuine root; ``cause`` the
+    :class:`Cause` it ends an interval with.
     """
 
-    joint: np.ndarray
-    bound: np.ndarray
-    tangent: np.ndarray
-    cos_phi: np.ndarray
-    sin_phi: np.ndarray
-    cz: np.ndarray
-    rate_sign: np.ndarray
-    cosine: np.ndarray
-    is_max: np.ndarray
+    joint: int
+    tangent: bool
+    cos_phi: float
+    sin_phi: float
+    cos_limit: float
+    rate_sign: float
+    is_max: bool
+    cause: Cause
 
 
-_TABLES: dict[tuple, _RowTable] = {}
+_TABLES: dict[tuple, tuple[_LimitRow, ...]] = {}
 
 
-def _row_table(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray) -> _RowTable:
-    key = (q_min.tobytes(), q_max.tobytes(), sm.sign.tobytes(), sm.kind.tobytes())
+def _row_table(sign: np.ndarray, q_min: np.ndarray, q_max: np.ndarray) -> tuple[_LimitRow, ...]:
+    """The limit rows (joint-major, min before max) that can bind, for joint signs ``sign`` (cached)."""
+    key = (q_min.tobytes(), q_max.tobytes(), sign.tobytes())
     table = _TABLES.get(key)
     if table is None:
-        joint = np.repeat(_ALL_JOINTS[sm.kind != 2], 2)
-        bound = np.tile([0, 1], joint.size // 2)
-        theta = np.where(bound == 1, q_max[joint], q_min[joint])
-        tangent = sm.kind[joint] == _TAN
-        keep = tangent | (theta * sm.sign[joint] >= 0)  # θ = s·acos(x) never reaches a bound of the other sign
-        joint, bound, theta, tangent = joint[keep], bound[keep], theta[keep], tangent[keep]
-        phi = sm.sign[joint] * theta
-        cz = np.zeros((joint.size, 3))
-        cz[:, 2] = np.cos(theta)
-        rate = np.where(tangent, sm.sign[joint], -sm.sign[joint])
-        table = _RowTable(
-            joint, bound, tangent[:, None], np.cos(phi)[:, None], np.sin(phi)[:, None], cz, rate, ~tangent, bound == 1
-        )
-        _TABLES[key] = table
+        rows = []
+        for k in _ALL_JOINTS[_KIND != _CONST].tolist():
+            s, tangent = float(sign[k]), bool(_KIND[k] == _TAN)
+            for bound, theta in enumerate((float(q_min[k]), float(q_max[k]))):
+                if tangent or theta * s >= 0:  # θ = s·acos(x) never reaches a bound of the other sign
+                    phi = s * theta
+                    rows.append(_LimitRow(k, tangent, math.cos(phi), math.sin(phi), math.cos(theta),
+                                          s if tangent else -s, bound == 1, Cause("limit", k, _BOUNDS[bound])))
+        table = _TABLES[key] = tuple(rows)
     return table
 
 
-def _residual_coefficients(sm: SelfMotion, t: _RowTable) -> np.ndarray:
-    """Rows ``e`` with ``e·(sin ns, cos ns, 1) = 0`` exactly at the limit crossings.
+def _crossings(row: _LimitRow, num: list[float], den: list[float], genuine_only: bool) -> list[tuple[float, float]]:
+    """Arm angles where the row's joint crosses its limit [E 7], with the residual's slope there.
 
-    Tangent type: ``atan2(num, den) = φ`` ⇔ ``num cos φ − den sin φ = 0``;
-    cosine type: ``den − cos θ_limit = 0``.
+    The crossings solve ``a sin ns + b cos ns = c`` exactly — tangent type:
+    ``atan2(num, den) = φ`` ⇔ ``num cos φ − den sin φ = 0``; cosine type:
+    ``den = cos θ_limit`` — at ``atan2(a, b) ± δ``, ``δ = acos(c/r)``
+    (``r = √(a²+b²)``; ``|c| ≤ r`` keeps ``c/r`` in [-1, 1] exactly), each
+    polished by one Newton step; the slope there is ``∓ r sin δ``.  A tangent-type
+    root is genuine where ``(num, den)`` points along φ, not φ + π
+    (``num sin φ + den cos φ > 0``); ``genuine_only`` drops the others.
     """
-    num, den = sm.num[t.joint], sm.den[t.joint]
-    return np.where(t.tangent, num * t.cos_phi - den * t.sin_phi, den - t.cz)
+    if row.tangent:
+        cp, sp = row.cos_phi, row.sin_phi
+        a, b, c = num[0] * cp - den[0] * sp, num[1] * cp - den[1] * sp, den[2] * sp - num[2] * cp
+    else:
+        a, b, c = den[0], den[1], row.cos_limit - den[2]
+    r = math.hypot(a, b)
+    if not (r > 1e-14 and abs(c) <= r):
+        return []
+    delta = math.acos(c / r)
+    base, slope = math.atan2(a, b), r * math.sin(delta)
+    out = []
+    for x, rate in ((base + delta, -slope), (base - delta, slope)):
+        sx, cx = math.sin(x), math.cos(x)
+        if genuine_only and row.tangent and not (
+            (num[0] * sx + num[1] * cx + num[2]) * sp + (den[0] * sx + den[1] * cx + den[2]) * cp > 0
+        ):
+            continue
+        df = a * cx - b * sx
+        out.append((x - (a * sx + b * cx - c) / df if abs(df) > 1e-6 * r else x, rate))
+    return out
 
 
-def _solve_sin_cos(a: np.ndarray, b: np.ndarray, c: np.ndarray, with_slope: bool = False):  # type: ignore[no-untyped-def]
-    """Roots of ``a sin x + b cos x = c`` (vectorised): shape (2, n), NaN where none.
-
-    ``atan2(a, b) ± acos(c/r)`` (r = √(a²+b²)), then one Newton step on the
-    residual.  With ``with_slope``, also the residual's slope ``∓ r sin δ`` at each root.
-    """
-    r = np.hypot(a, b)
-    ok = (r > 1e-14) & (np.abs(c) <= r)
-    delta = np.arccos(np.clip(c / np.maximum(r, 1e-14), -1.0, 1.0))
-    base = np.arctan2(a, b)
-    roots = base + _PLUS_MINUS * delta
-    f = a * np.sin(roots) + b * np.cos(roots) - c
-    df = a * np.cos(roots) - b * np.sin(roots)
-    steep = np.abs(df) > 1e-6 * r
-    step = np.where(steep, f / np.where(steep, df, 1.0), 0.0)
-    roots = np.where(ok, roots - step, np.nan)
-    if not with_slope:
-        return roots
-    return roots, -_PLUS_MINUS * (r * np.sin(delta))
+def _singular_cuts(den: list[list[float]], joints: object = (1, 5)) -> list[tuple[int, float]]:
+    """``(k, ns)`` where joint k (2 or 6, 0-based 1 or 5) passes through 0: ``cos θ_k`` reaches 1."""
+    out = []
+    for k in (1, 5):
+        if k in joints:
+            sa, cb, c0 = den[k]
+            if c0 + math.hypot(sa, cb) >= 1.0 - SINGULAR_TOL:
+                out.append((k, math.atan2(sa, cb)))
+    return out
 
 
 def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):  # type: ignore[no-untyped-def]
@@ -196,22 +206,16 @@ def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
     Returns ``(angles, labels, hard, cause)``: ``labels[i]`` indexes the limit
     row, or is ``-1 − k`` for a singular cut of joint k; ``hard`` marks singular cuts.
     """
-    t = _row_table(sm, q_min, q_max)
-    rows = np.flatnonzero(np.isin(t.joint, joints))
-    e = _residual_coefficients(sm, t)[rows]
-    roots = _solve_sin_cos(e[:, 0], e[:, 1], -e[:, 2])
-    joint, bound = t.joint, t.bound
-    angles = [roots.reshape(-1)]
-    labels = [np.tile(rows, 2)]
-    for k in (1, 5):  # joints 2 and 6 through 0: singular cuts
-        if k in joints:
-            sa, cb, c0 = sm.den[k]
-            if c0 + math.hypot(sa, cb) >= 1.0 - SINGULAR_TOL:
-                angles.append(np.array([math.atan2(sa, cb)]))
-                labels.append(np.array([-1 - k]))
-    ang, lab = np.concatenate(angles), np.concatenate(labels)
-    keep = np.isfinite(ang)
-    ang, lab = wrap(ang[keep]), lab[keep]
+    table = _row_table(sm.sign, q_min, q_max)
+    num, den, wanted = sm.num.tolist(), sm.den.tolist(), set(joints.tolist())
+    roots = [(i, _crossings(t, num[t.joint], den[t.joint], False)) for i, t in enumerate(table) if t.joint in wanted]
+    found = [(i, r) for i, r in roots if r]
+    ang = [r[0][0] for _, r in found] + [r[1][0] for _, r in found]  # all "+" roots, then all "−" roots
+    lab = [i for i, _ in found] * 2
+    for k, x in _singular_cuts(den, wanted):
+        ang.append(x)
+        lab.append(-1 - k)
+    ang, lab = wrap(np.array(ang, dtype=float)), np.array(lab, dtype=int)
     order = np.lexsort((lab >= 0, ang))  # singular first among equal angles
     ang, lab = ang[order], lab[order]
     if ang.size > 1:
@@ -221,9 +225,7 @@ def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
             ang, lab = ang[:-1], lab[:-1]
 
     def cause(label: int) -> Cause:
-        if label < 0:
-            return Cause("singular", -1 - label)
-        return Cause("limit", int(joint[label]), _BOUNDS[bound[label]])
+        return Cause("singular", -1 - label) if label < 0 else table[label].cause
 
     return ang, lab, lab < 0, cause
 
@@ -259,39 +261,33 @@ def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
     return sorted(arcs, key=lambda arc: arc[0])
 
 
-def _closed_form_interval(sm: SelfMotion, ns0: float, q_min: np.ndarray, q_max: np.ndarray) -> Interval:
+def _closed_form_interval(num: list, den: list, sign: np.ndarray, ns0: float, q_min: np.ndarray,
+                          q_max: np.ndarray) -> Interval:
     """[E 9] directly: the nearest genuine exit crossing (or singular cut) on each side of ``ns0``.
 
+    ``num``, ``den``, ``sign``: the :class:`SelfMotion` rows (plain floats).
     Valid because the configuration at ``ns0`` is within all limits: moving away
     from it, the first limit crossing of any joint is where that joint leaves.
-    A tangent-type root is genuine when ``(num, den)`` points along φ (not
-    φ + π); at root ``atan2(a,b) ∓ acos(c/r)`` the residual's slope is ``∓ r sin δ``,
-    which gives the direction in which the joint leaves its bound.
+    The residual's slope at a genuine root gives the direction in which the
+    joint leaves its bound.  Plain floats: about ten rows, each a scalar solve.
     """
-    t = _row_table(sm, q_min, q_max)
-    num, den = sm.num[t.joint], sm.den[t.joint]
-    e = _residual_coefficients(sm, t)
-    roots, slope = _solve_sin_cos(e[:, 0], e[:, 1], -e[:, 2], with_slope=True)
-    g = num * t.sin_phi + den * t.cos_phi
-    along = g[:, 0] * np.sin(roots) + g[:, 1] * np.cos(roots) + g[:, 2]
-    ok = (t.cosine | (along > 0)) & np.isfinite(roots)
-    up = (slope * t.rate_sign > 0) == t.is_max
-    ahead = (roots - ns0) % TWO_PI  # behind = 2π − ahead; ends within 1e-9 of ns0 count as 0
-    behind = np.where(ok & ~up, np.where(ahead < 1e-9, 0.0, TWO_PI - ahead), np.inf).reshape(-1)
-    ahead = np.where(ok & up, np.where(ahead > TWO_PI - 1e-9, 0.0, ahead), np.inf).reshape(-1)
-    i_hi, i_lo = int(np.argmin(ahead)), int(np.argmin(behind))
-    n = t.joint.size
-    hi = (float(ahead[i_hi]), ("limit", int(t.joint[i_hi % n]), _BOUNDS[t.bound[i_hi % n]]))
-    lo = (float(behind[i_lo]), ("limit", int(t.joint[i_lo % n]), _BOUNDS[t.bound[i_lo % n]]))
-    for k in (1, 5):  # joints 2 and 6 through 0: singular cuts end the interval on both sides
-        sa, cb, c0 = sm.den[k]
-        if c0 + math.hypot(sa, cb) >= 1.0 - SINGULAR_TOL:
-            x = math.atan2(sa, cb)
-            hi = min(hi, ((x - ns0) % TWO_PI, ("singular", k, "")))
-            lo = min(lo, ((ns0 - x) % TWO_PI, ("singular", k, "")))
+    table = _row_table(sign, q_min, q_max)
+    n = len(table)
+    hi = lo = (math.inf, 0, None)  # (distance from ns0, tie-break order, cause)
+    for i, t in enumerate(table):
+        for j, (x, slope) in enumerate(_crossings(t, num[t.joint], den[t.joint], True)):
+            ahead = (x - ns0) % TWO_PI  # behind = 2π − ahead; ends within 1e-9 of ns0 count as 0
+            if (slope * t.rate_sign > 0) == t.is_max:
+                hi = min(hi, (0.0 if ahead > TWO_PI - 1e-9 else ahead, i + j * n, t.cause))
+            else:
+                lo = min(lo, (0.0 if ahead < 1e-9 else TWO_PI - ahead, i + j * n, t.cause))
+    for k, x in _singular_cuts(den):  # joints 2 and 6 through 0: singular cuts end the interval on both sides
+        cut = Cause("singular", k)
+        hi = min(hi, ((x - ns0) % TWO_PI, 2 * n + k, cut))
+        lo = min(lo, ((ns0 - x) % TWO_PI, 2 * n + k, cut))
     if math.isinf(hi[0]) and math.isinf(lo[0]):
         return Interval(ns0 - math.pi, ns0 + math.pi, True, "closed_form")
-    return Interval(ns0 - lo[0], ns0 + hi[0], False, "closed_form", Cause(*lo[1]), Cause(*hi[1]))
+    return Interval(ns0 - lo[0], ns0 + hi[0], False, "closed_form", lo[2], hi[2])
 
 
 # --------------------------------------------------------------- public API
@@ -326,9 +322,8 @@ def continuity_interval(robot: Robot, q: object, options: "NumericalOptions | No
         return numerical_interval(robot, qv, options)
     pin.framesForwardKinematics(robot.model, robot.data, qv)
     ns = _checked(_status_after_fk(robot))
-    pose = robot.data.oMf[robot.tool_frame_id]
-    sm = _self_motion(srs_geometry(robot), pose, _branch_of(qv))
-    return _closed_form_interval(sm, ns, robot.q_min, robot.q_max)
+    num, den, sign, _ = _self_motion_rows(srs_geometry(robot), robot.data.oMf[robot.tool_frame_id], _branch_of(qv))
+    return _closed_form_interval(num, den, sign, ns, robot.q_min, robot.q_max)
 
 
 # ---------------------------------------------------------------- numerical

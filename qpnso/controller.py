@@ -227,6 +227,15 @@ class Controller:
         self._q_low, self._q_high = robot.q_min - 1e-9, robot.q_max + 1e-9  # limits as checked (rad)
         self._dq_max, self._dq_min = robot.dq_max.copy(), -robot.dq_max
         self.strategy = make_strategy(cfg.strategy, self)
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """One dry tick at the robot's sample configuration, then forgotten: the Numba kernels of
+        :mod:`qpnso.linalg` and :mod:`qpnso.hqp` compile here (seconds, once per machine, then
+        cached on disk), never in the user's first control tick."""
+        q = self.robot.sample_configuration()
+        self.reset(q)
+        self.step(q)
         self._reset_done = False
 
     # ---------------------------------------------------------------- reset

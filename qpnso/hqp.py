@@ -590,7 +590,14 @@ def _violation(lo: np.ndarray, value: np.ndarray, hi: np.ndarray) -> np.ndarray:
 _OWNED_1 = np.ones((1, 1))
 _OWNED_0 = np.zeros((1, 0))
 _NO_VECTOR = np.zeros(0)
-_NO_ROWS_N = {n: np.zeros((0, n)) for n in range(1, 65)}  # an absent matrix part, per width (read-only use)
+
+
+@functools.lru_cache(maxsize=16)
+def _no_rows(n: int) -> np.ndarray:
+    """A read-only (0, n) array: an absent matrix part passed to a kernel (cached, any width)."""
+    empty = np.zeros((0, n))
+    empty.flags.writeable = False
+    return empty
 
 
 @dataclass(slots=True)
@@ -692,9 +699,9 @@ def _line_level_qp(data: _LevelData, line: _Line, settings: QPSettings) -> Level
     ns = data.n_slack
     H, g, C, lo, hi, box_l, box_u, owned = _line_qp_arrays(
         d, line.x0, line.t_lo, line.t_hi,
-        _NO_ROWS_N[n] if data.Aw is None else data.Aw, _NO_VECTOR if data.bw is None else data.bw,
-        _NO_ROWS_N[n] if data.H is None else data.H, _NO_VECTOR if data.g is None else data.g,
-        _NO_ROWS_N[n] if data.C is None else data.C, _NO_VECTOR if data.l is None else data.l,
+        _no_rows(n) if data.Aw is None else data.Aw, _NO_VECTOR if data.bw is None else data.bw,
+        _no_rows(n) if data.H is None else data.H, _NO_VECTOR if data.g is None else data.g,
+        _no_rows(n) if data.C is None else data.C, _NO_VECTOR if data.l is None else data.l,
         _NO_VECTOR if data.u is None else data.u, ns, 1.0 / math.sqrt(2.0 * data.rho) if ns else 0.0,
         settings.regularization or 0.0, settings.rank_tol, settings.damping_threshold)
     return LevelQP(H, g, C, lo, hi, box_l, box_u, line.x0, d[:, None], _OWNED_1 if owned else _OWNED_0, None,

@@ -489,3 +489,17 @@ def test_unknown_backend_raises_solver_error_listing_solvers():
         HierarchicalQP(N, backend="nosuchsolver")
     with pytest.raises(InputError):
         HierarchicalQP(0)
+
+
+def test_line_fast_path_any_width():
+    """The line fast path has no size limit: a 70-joint arm with a 69-row task and a pure
+    (H, g) second level matches the general cascade."""
+    rng = np.random.default_rng(4)
+    n = 70
+    levels = [Level(A=rng.standard_normal((n - 1, n)), b=0.1 * rng.standard_normal(n - 1)),
+              Level(H=np.eye(n), g=rng.standard_normal(n))]
+    lb, ub = -10 * np.ones(n), 10 * np.ones(n)
+    line = HierarchicalQP(n).solve(levels, lb, ub)
+    general = HierarchicalQP(n, settings=QPSettings(line_fast_path=False)).solve(levels, lb, ub)
+    assert line.ok and general.ok and LINE_MESSAGE in line.levels[0].message
+    np.testing.assert_allclose(line.x, general.x, atol=1e-6)

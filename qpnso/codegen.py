@@ -139,10 +139,19 @@ class FastFunction:
 
     def __call__(self, *inputs: np.ndarray) -> tuple:
         with self._lock:
-            for dst, src in zip(self._in, inputs):
-                dst[:] = np.ravel(src, order="F")
-            self._evaluate()
+            self._run(inputs)
             return tuple(self._result(k) for k in range(len(self._out)))
+
+    def flat(self, *inputs: np.ndarray) -> np.ndarray:
+        """The first output's entries (column-major), a fresh copy: one array for a stacked output."""
+        with self._lock:
+            self._run(inputs)
+            return self._out[0].copy()
+
+    def _run(self, inputs: tuple) -> None:
+        for dst, src in zip(self._in, inputs):
+            dst[:] = src if isinstance(src, np.ndarray) and src.ndim == 1 else np.ravel(src, order="F")
+        self._evaluate()
 
     def _result(self, k: int) -> np.ndarray | float:
         rows, cols = self._shapes[k]

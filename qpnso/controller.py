@@ -13,6 +13,14 @@
 4. the command: ``dq``, ``q_des = q + dt·dq`` and the torque
    ``τ = g(q) + Nᵀ τ_null`` with the dynamically consistent null-space projector.
 
+For the ``qp`` strategy, whenever the QP's line fast path applies (a full-rank
+tool Jacobian whose exact solutions meet the joint bounds: nearly every tick),
+steps 3–4 run as the *compiled tick* (:mod:`qpnso.tick`): one Numba call from
+the state to the level-2 QP, the same persistent ProxSuite object, one Numba
+call for the torque — the general path's answer to round-off, at a fraction of
+its Python overhead.  ``Controller.compiled_tick = False`` (or
+``ControllerConfig(compiled_tick=False)``) always takes the general path.
+
 A failed or infeasible QP never reaches the robot: the command falls back to
 the level-1 solution (tool held, no null-space motion) or, if level 1 failed
 too, to zero velocity, and ``Command.status`` says so.
@@ -35,8 +43,10 @@ from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.intervals import Interval, continuity_interval
 from qpnso.linalg import dynamically_consistent_projection
 from qpnso.robot import Robot, as_vector
-from qpnso.rom import ElbowConfig, clip_rom, stiffness
+from qpnso.rom import ElbowConfig, clipped_bounds, stiffness
 from qpnso.state import StateEvaluator, TickState
+from qpnso.tick import (LINE_OK, LineTickBuffers, limits_status, max_abs_difference, pose_error, qp_line_tick,
+                         qp_torque, velocity_bounds)
 
 TOOL_RESIDUAL_REPORTED = 1e-6
 """m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
@@ -50,11 +60,6 @@ TOOL_MOVED_TOL = 1e-6
 """m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
 cached continuity interval (its ends move by ~1e-6 rad at most, against a safety margin of degrees)."""
 TWO_PI = 2.0 * math.pi
-
-
-def _pose_vector(state: TickState) -> np.ndarray:
-    """Tool position (m) and rotation-matrix entries in one (12,) vector, for cheap comparisons."""
-    return np.concatenate((state.tool_position, state.tool_rotation.ravel()))
 
 
 def _norm(v: np.ndarray) -> float:
@@ -117,6 +122,7 @@ class ControllerConfig:
     qp_backend: str = "proxsuite"
     qp_settings: QPSettings = field(default_factory=QPSettings)
     compile: str | None = None  # CasADi evaluation: background|sync|off (codegen.py)
+    compiled_tick: bool = True  # qp strategy: the tick as one Numba kernel when the line fast path applies (tick.py)
 
     def __post_init__(self) -> None:
         if self.strategy not in STRATEGIES:
@@ -225,9 +231,32 @@ class Controller:
         self.elbow_config = cfg.elbow()
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
         self._q_low, self._q_high = robot.q_min - 1e-9, robot.q_max + 1e-9  # limits as checked (rad)
-        self._dq_max, self._dq_min = robot.dq_max.copy(), -robot.dq_max
+        self._q_shape = (robot.nq,)
         self.strategy = make_strategy(cfg.strategy, self)
+        self._can_compile = cfg.strategy == "qp" and self.qp.settings.line_fast_path
+        self.compiled_tick = cfg.compiled_tick and self._can_compile
+        self._gains = np.array([cfg.pose_gain, cfg.joint_limit_gain, cfg.cost_gain, cfg.nullspace_speed_max,
+                                self.strategy.filter_alpha if self._can_compile else 0.0, cfg.elbow_gain,
+                                1.0 / math.sqrt(2.0 * cfg.slack_weight)])
+        st = self.qp.settings
+        self._qp_tol = np.array([st.rank_tol, st.damping_threshold, st.regularization or 0.0])
+        self._line = LineTickBuffers(self.strategy.filtered_step) if self._can_compile else None
+        self._no_twist = np.zeros(6)
+        self._no_twist.flags.writeable = False
         self._warm_up()
+
+    @property
+    def compiled_tick(self) -> bool:
+        """Whether ``step`` runs the compiled tick (:mod:`qpnso.tick`) when the line fast path applies;
+        False: always the general path through :meth:`HierarchicalQP.solve`.  Only the ``qp``
+        strategy with ``QPSettings.line_fast_path`` has one."""
+        return self._compiled_tick
+
+    @compiled_tick.setter
+    def compiled_tick(self, value: bool) -> None:
+        if value and not self._can_compile:
+            raise ConfigError("the compiled tick needs strategy 'qp' and QPSettings.line_fast_path")
+        self._compiled_tick = bool(value)
 
     def _warm_up(self) -> None:
         """One dry tick at the robot's sample configuration, then forgotten: the Numba kernels of
@@ -252,7 +281,7 @@ class Controller:
         self.ns0 = float(state.arm_angle if ns0 is None else ns0)
         self._ns_prev = float(state.arm_angle)
         self._interval: Interval | None = None
-        self._interval_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self._interval_pose: np.ndarray | None = None
         self._interval_age = 0
         self._dq_prev = np.zeros(self.robot.nq)
         self.strategy.reset(q, state)
@@ -276,44 +305,90 @@ class Controller:
             raise QpnsoError("call Controller.reset(q0) before step()")
         qv, status = self._check_input(q)
         dq_meas = self._dq_prev if dq is None else as_vector(dq, self.robot.nq, "dq")
-        twist = np.zeros(6) if tool_twist is None else as_vector(tool_twist, 6, "tool_twist")
+        twist = self._no_twist if tool_twist is None else as_vector(tool_twist, 6, "tool_twist")
         if tool_pose is not None:
             self.ref_rotation, self.ref_position = tool_pose.rotation.copy(), tool_pose.translation.copy()
         state = self.evaluate(qv)
-        error = self._pose_error(state)
         elbow = self._elbow(state)
         status |= elbow.status
-        lb, ub = self._velocity_bounds(qv)
+        tick = self._compiled(state, elbow, twist, dq_meas) if self.compiled_tick and not elbow.dropped else None
+        if tick is None:
+            tick = self._general(state, elbow, twist, dq_meas)
+        dq_cmd, tau, tool_error, qp_status, message, solve_time = tick
+        if tool_twist is not None:
+            self._advance_reference(twist, tool_pose is not None)
+        self._dq_prev = dq_cmd
+        self.step_count += 1
+        return Command(
+            dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
+            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost, status=status | qp_status,
+            solve_time=solve_time, tick_time=time.perf_counter() - t0,
+            tool_error=tool_error, message=message,
+        )
+
+    def _general(self, state: TickState, elbow: ElbowState, twist: np.ndarray, dq_meas: np.ndarray) -> tuple:
+        """The tick through :meth:`HierarchicalQP.solve` with the strategy's levels (any strategy)."""
+        error = self._pose_error(state)
+        lb, ub = self._velocity_bounds(state.q)
         level1 = Level(A=state.jacobian, b=twist + self.config.pose_gain * error)
         level2 = self.strategy.level2(state, elbow)
         levels = [level1] if level2 is None else [level1, level2]
         result = self.qp.solve(levels, lb, ub, check=False)  # arrays built here; the answer is still checked
         dq_cmd, qp_status, message = self._command_velocity(result)
-        status |= qp_status
         tau = self._torque(state, dq_cmd, dq_meas, elbow)
-        self._advance_reference(twist, tool_pose is not None)
-        self._dq_prev = dq_cmd
-        self.step_count += 1
-        return Command(
-            dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
-            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost, status=status,
-            solve_time=result.solve_time, tick_time=time.perf_counter() - t0,
-            tool_error=(_norm(error[:3]), _norm(error[3:])), message=message,
-        )
+        return dq_cmd, tau, (_norm(error[:3]), _norm(error[3:])), qp_status, message, result.solve_time
+
+    def _compiled(self, state: TickState, elbow: ElbowState, twist: np.ndarray, dq_meas: np.ndarray) -> tuple | None:
+        """The ``qp`` strategy's tick as :func:`qpnso.tick.qp_line_tick` (state → level-2 line QP, one
+        Numba call), the back end's level-2 solve (:meth:`HierarchicalQP.solve_line_level`) and
+        :func:`qpnso.tick.qp_torque`: the general path's answer to round-off.  None when the line
+        fast path does not apply (then the general path runs; nothing was advanced)."""
+        t1 = time.perf_counter()
+        r, buf = self.robot, self._line
+        code, e_pos, e_rot, residual = qp_line_tick(
+            state.q, state.tool_rotation, state.tool_position, state.jacobian, state.cost_gradient,
+            state.arm_angle_gradient, self.ref_rotation, self.ref_position, twist, r.q_min, r.q_max, r.dq_max,
+            elbow.ns, elbow.rom[0], elbow.rom[1], self._gains, self._qp_tol, *buf.outputs())
+        if code != LINE_OK:
+            return None
+        second = self.qp.solve_line_level(buf.H, buf.g, buf.C, buf.l, buf.u, buf.box_l, buf.box_u, buf.x0, buf.d, 1)
+        stats = self.qp.stats
+        stats.solves += 1
+        status, message = Status.OK, ""
+        if second.ok:
+            dq_cmd = second.x
+            if second.slack[0] > ELBOW_SLACK_REPORTED:
+                status = Status.ELBOW_SLACK
+        else:
+            stats.failures += 1
+            dq_cmd, status = buf.x1.copy(), Status.QP_FAILED
+            message = f"QP failed (level 2 of 2 {second.status}: {second.message}): tool held, no null-space motion"
+        if residual > TOOL_RESIDUAL_REPORTED:
+            status |= Status.TOOL_LIMITED
+        solve_time = time.perf_counter() - t1
+        gravity = pin.computeGeneralizedGravity(r.model, r.data, state.q)
+        a = pin.crba(r.model, r.data, state.q)
+        tau = qp_torque(a, gravity, state.jacobian, dq_cmd, dq_meas, elbow.stiffness, self.config.dt,
+                        self.config.joint_damping)
+        return dq_cmd, tau, (e_pos, e_rot), status, message, solve_time
 
     # ------------------------------------------------------------- helpers
     def _check_input(self, q: object) -> tuple[np.ndarray, Status]:
         """Shape/NaN → InputError; outside the limits is recovered (flagged), not refused."""
-        qv = as_vector(q, self.robot.nq, "q")
-        if (qv < self._q_low).any() or (qv > self._q_high).any():
-            return qv, Status.Q_OUT_OF_LIMITS
-        return qv, Status.OK
+        qv = q if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape \
+            else as_vector(q, self.robot.nq, "q")
+        code = limits_status(qv, self._q_low, self._q_high)
+        if code == 2:
+            as_vector(qv, self.robot.nq, "q")  # raises, naming the entries
+        return qv, Status.Q_OUT_OF_LIMITS if code else Status.OK
 
     def _pose_error(self, state: TickState) -> np.ndarray:
-        """(position error m, rotation error rad) of the reference w.r.t. the tool, world frame."""
-        dp = self.ref_position - state.tool_position
-        dr = pin.log3(self.ref_rotation @ state.tool_rotation.T)
-        return np.concatenate([dp, dr])
+        """(position error m, rotation error rad) of the reference w.r.t. the tool, world frame
+        (:func:`qpnso.tick.pose_error`; ``pinocchio.log3`` for an angle near π)."""
+        error, ok = pose_error(state.tool_rotation, state.tool_position, self.ref_rotation, self.ref_position)
+        if not ok:
+            error[3:] = pin.log3(self.ref_rotation @ state.tool_rotation.T)
+        return error
 
     def _advance_reference(self, twist: np.ndarray, external: bool) -> None:
         if external or not np.any(twist):
@@ -323,19 +398,10 @@ class Controller:
         self.ref_rotation = pin.exp3(dt * twist[3:]) @ self.ref_rotation
 
     def _velocity_bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Joint velocity limits and a position damper: q never crosses its limits.
-
-        ``-γ(q - q_min) ≤ q̇ ≤ γ(q_max - q)`` with γ·dt ≤ 1, clipped to ±dq_max;
-        outside a limit the same rows push back at rate γ.
-        """
-        gain = self.config.joint_limit_gain
+        """Joint velocity limits and a position damper (:func:`qpnso.tick.velocity_bounds`): q never
+        crosses its limits; outside a limit the same rows push back at rate ``joint_limit_gain``."""
         r = self.robot
-        lb = gain * (r.q_min - q)
-        ub = gain * (r.q_max - q)
-        for side in (lb, ub):  # clip to ±dq_max in place (np.clip costs more than both calls)
-            np.minimum(side, self._dq_max, out=side)
-            np.maximum(side, self._dq_min, out=side)
-        return lb, np.maximum(ub, lb, out=ub)
+        return velocity_bounds(q, r.q_min, r.q_max, r.dq_max, self.config.joint_limit_gain)
 
     def _elbow(self, state: TickState) -> ElbowState:
         """Arm angle (unwrapped), continuity interval, ROM_t [E 10], [E 11] and K(ns) [E 6].
@@ -351,11 +417,11 @@ class Controller:
         ns = self._unwrap(state.arm_angle)
         interval, stale = self._continuity(state, ns)
         status = Status.INTERVAL_STALE if stale else Status.OK
-        rom = clip_rom(self.ns0, cfg.half_width_rad, interval, cfg.safety_margin_rad)
-        if rom.empty:
+        lo, hi, empty = clipped_bounds(self.ns0, cfg.half_width_rad, interval.lo, interval.hi, interval.full_circle,
+                                       cfg.safety_margin_rad)
+        if empty:
             status |= Status.ROM_EMPTY
-        k = float(stiffness(ns, self.ns0, cfg))
-        return ElbowState(ns, (rom.lo, rom.hi), (interval.lo, interval.hi), k, status)
+        return ElbowState(ns, (lo, hi), (interval.lo, interval.hi), stiffness(ns, self.ns0, cfg), status)
 
     def _unwrap(self, ns_wrapped: float) -> float:
         d = (ns_wrapped - self._ns_prev + np.pi) % (2 * np.pi) - np.pi
@@ -373,7 +439,7 @@ class Controller:
         if not fresh:
             try:
                 self._interval = continuity_interval(self.robot, state.q)
-                self._interval_pose = _pose_vector(state)
+                self._interval_pose = state.pose
                 self._interval_age = 0
             except QpnsoError:
                 stale = True
@@ -384,7 +450,7 @@ class Controller:
     def _tool_moved(self, state: TickState) -> bool:
         """Whether the tool pose differs, by more than ``TOOL_MOVED_TOL`` (m, and rad-sized rotation
         entries), from the one the cached interval was computed at."""
-        return bool(np.abs(_pose_vector(state) - self._interval_pose).max() > TOOL_MOVED_TOL)
+        return max_abs_difference(state.pose, self._interval_pose) > TOOL_MOVED_TOL
 
     @staticmethod
     def _shift(interval: Interval, ns: float) -> Interval:

@@ -44,6 +44,9 @@ two levels, the general cascade below runs.  The small factorisations are
 Numba kernels (:mod:`qpnso.linalg`).  Same answers as the general cascade
 (tests); on 300 recorded controller ticks (``solve(check=False)``, interleaved
 runs) 77–95 µs median per solve against 195–223 µs for the general cascade.
+Level 2 on the line is :meth:`HierarchicalQP.solve_line_level`; the
+controller's compiled tick (:mod:`qpnso.tick`) builds its arrays in one kernel
+and calls that method directly.
 
 The Hessian carries a tie-break ``½ μ ‖z‖²`` only in the directions that the
 level's own task leaves free (``μ = QPSettings.regularization``: 1e-7 for the
@@ -613,7 +616,7 @@ class _Line:
 
 
 @njit(cache=True)
-def _segment(x0, d, lb, ub):  # type: ignore[no-untyped-def]
+def line_segment(x0, d, lb, ub):  # type: ignore[no-untyped-def]
     """``[t_lo, t_hi]`` where ``lb ≤ x0 + t·d ≤ ub`` (empty: ``t_lo > t_hi``); ``d`` made to have its
     largest-magnitude entry positive first.  A still joint (|d_i| ≤ 1e-12: the elbow of an S-R-S
     arm) must be within its bounds at ``x0``."""
@@ -643,12 +646,12 @@ def _task_line(data: _LevelData, lb: np.ndarray, ub: np.ndarray, settings: QPSet
     x0, d, sigma_floor = least_norm_line(Aw, data.bw)
     if not sigma_floor >= max(settings.damping_threshold, settings.rank_tol * max(1.0, math.sqrt(np.sum(Aw * Aw)))):
         return None
-    t_lo, t_hi = _segment(x0, d, lb, ub)
+    t_lo, t_hi = line_segment(x0, d, lb, ub)
     return _Line(x0, d, t_lo, t_hi) if t_lo <= t_hi else None
 
 
 @njit(cache=True)
-def _line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale, reg, rank_tol, damping):  # type: ignore[no-untyped-def]
+def line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale, reg, rank_tol, damping):  # type: ignore[no-untyped-def]
     """The arrays of :func:`_line_level_qp` (absent level parts passed with zero rows).
 
     Cost ``‖A x − b‖² + ½xᵀHx + gᵀx`` at ``x = x0 + t·d``: curvature and slope in ``t``
@@ -697,7 +700,7 @@ def _line_level_qp(data: _LevelData, line: _Line, settings: QPSettings) -> Level
     d = line.direction
     n = d.shape[0]
     ns = data.n_slack
-    H, g, C, lo, hi, box_l, box_u, owned = _line_qp_arrays(
+    H, g, C, lo, hi, box_l, box_u, owned = line_qp_arrays(
         d, line.x0, line.t_lo, line.t_hi,
         _no_rows(n) if data.Aw is None else data.Aw, _NO_VECTOR if data.bw is None else data.bw,
         _no_rows(n) if data.H is None else data.H, _NO_VECTOR if data.g is None else data.g,
@@ -709,7 +712,7 @@ def _line_level_qp(data: _LevelData, line: _Line, settings: QPSettings) -> Level
 
 
 @njit(cache=True)
-def _line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack):  # type: ignore[no-untyped-def]
+def line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack):  # type: ignore[no-untyped-def]
     """A line QP's answer ``v = [t; σ]`` checked: ``x = x0 + t·d``, the worst violation of the box on
     ``t`` and of the hard rows, and each soft row's violation (its slack), rows taken without σ."""
     t = v[0]
@@ -839,36 +842,43 @@ class _ProxSuiteBackend:
     def solve(self, k: int, qp: LevelQP) -> _Raw:
         box = qp.box_l is not None and self._settings.box_constraints
         C, lo, hi = (qp.C, qp.l, qp.u) if box else qp.rows_with_box()
-        data = dict(H=qp.H, g=qp.g)
+        return self.solve_arrays(k, qp.H, qp.g, C, lo, hi, qp.box_l if box else None, qp.box_u if box else None)
+
+    def solve_arrays(self, k: int, H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                     box_l: np.ndarray | None, box_u: np.ndarray | None) -> _Raw:
+        """``min ½vᵀHv + gᵀv`` s.t. ``lo ≤ C v ≤ hi`` (and ``box_l ≤ v ≤ box_u`` if given) on the
+        persistent object of level ``k`` and this shape, warm-started; a failed warm solve is retried cold."""
+        box = box_l is not None
+        data = dict(H=H, g=g)
         if C.shape[0]:
             data.update(C=C, l=lo, u=hi)
         if box:
-            data.update(l_box=qp.box_l, u_box=qp.box_u)
-        key = (k, qp.H.shape[0], C.shape[0], box)
+            data.update(l_box=box_l, u_box=box_u)
+        key = (k, H.shape[0], C.shape[0], box)
         entry = self._qps.get(key)
         if entry is None:
-            obj = self._create(qp.H.shape[0], C.shape[0], box)
+            obj = self._create(H.shape[0], C.shape[0], box)
             obj.settings.initial_guess = self._cold
             obj.init(**data)
-            self._qps[key] = entry = [obj, False]
+            self._qps[key] = entry = [obj, False, obj.settings, obj.results, obj.results.info]  # members, by reference
         else:
             obj = entry[0]
-            obj.settings.initial_guess = self._cold if entry[1] else self._warm
+            entry[2].initial_guess = self._cold if entry[1] else self._warm
             obj.update(**data)
         obj.solve()
-        status = self._status.get(obj.results.info.status, LevelStatus.SOLVER_ERROR)
-        if status is not LevelStatus.SOLVED and obj.settings.initial_guess == self._warm:
+        settings, results, info = entry[2], entry[3], entry[4]
+        status = self._status.get(info.status, LevelStatus.SOLVER_ERROR)
+        if status is not LevelStatus.SOLVED and settings.initial_guess == self._warm:
             self._stats.cold_retries += 1  # a warm start can fail where a cold one does not (measured)
-            obj.settings.initial_guess = self._cold
+            settings.initial_guess = self._cold
             obj.init(**data)  # same object; resets its adapted penalties too
             obj.solve()
-            status = self._status.get(obj.results.info.status, LevelStatus.SOLVER_ERROR)
-        info = obj.results.info
+            status = self._status.get(info.status, LevelStatus.SOLVER_ERROR)
         entry[1] = status is not LevelStatus.SOLVED  # a failed result is a bad warm start
         message = self._messages.get(info.status)
         if message is None:
             message = self._messages[info.status] = f"proxsuite {info.status.name}"
-        return _Raw(np.array(obj.results.x), status, int(info.iter), message)
+        return _Raw(np.array(results.x), status, info.iter, message)  # results.x is a view: copied
 
     @property
     def qp_objects(self) -> int:
@@ -991,21 +1001,38 @@ class HierarchicalQP:
             return [first]
         level = data[1]
         qp = _line_level_qp(level, line, self.settings)
-        raw = self._backend.solve(1, qp)
-        if raw.status is not LevelStatus.SOLVED or raw.v is None or not math.isfinite(raw.v.sum()):
-            second = self._check(level, qp, raw)  # names the failure
-        else:
-            x, worst, slack = _line_answer(raw.v, line.direction, line.x0, qp.box_l, qp.box_u, qp.C, qp.l, qp.u,
-                                           qp.n_slack)
-            if worst <= self.settings.feasibility_tol:
-                second = LevelResult(LevelStatus.SOLVED, x=x, residual=_residual(level, x),
-                                     slack=slack if qp.n_slack else None, iterations=raw.iterations,
-                                     message=raw.message)
-            else:
-                second = LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
-                                     message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
+        second = self.solve_line_level(qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, line.x0, line.direction,
+                                       qp.n_slack, qp)
+        if second.ok:
+            second.residual = _residual(level, second.x)
         second.solve_time_s = time.perf_counter() - t2
         return [first, second]
+
+    def solve_line_level(self, H: np.ndarray, g: np.ndarray, C: np.ndarray, l: np.ndarray, u: np.ndarray,
+                         box_l: np.ndarray, box_u: np.ndarray, x0: np.ndarray, direction: np.ndarray,
+                         n_slack: int, qp: LevelQP | None = None) -> LevelResult:
+        """Level 2 of the line fast path from the arrays of :func:`line_qp_arrays` (``v = [t; σ]``,
+        ``x = x0 + t·direction``, rad/s): solved on the back end's persistent level-2 object, the
+        answer checked (box on ``t`` and hard rows within ``feasibility_tol``) and the soft rows'
+        slack reported; ``residual`` is left to the caller.  :meth:`solve` uses it, and so does the
+        controller's compiled tick (:mod:`qpnso.tick`), which counts its own ticks in ``stats``."""
+        if isinstance(self._backend, _ProxSuiteBackend) and self.settings.box_constraints:
+            raw = self._backend.solve_arrays(1, H, g, C, l, u, box_l, box_u)
+        else:
+            if qp is None:
+                qp = LevelQP(H, g, C, l, u, box_l, box_u, x0, direction[:, None], _OWNED_0, None, n_slack, 0, 0)
+            raw = self._backend.solve(1, qp)
+        if raw.status is not LevelStatus.SOLVED:
+            return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
+        if raw.v is None or raw.v.shape != g.shape or not math.isfinite(raw.v[0]):  # x depends on t = v[0] only
+            return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
+                               message=f"{raw.message}: non-finite or mis-shaped solution")
+        x, worst, slack = line_answer(raw.v, direction, x0, box_l, box_u, C, l, u, n_slack)
+        if not worst <= self.settings.feasibility_tol:
+            return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
+                               message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
+        return LevelResult(LevelStatus.SOLVED, x=x, slack=slack if n_slack else None, iterations=raw.iterations,
+                           message=raw.message)
 
     def _solve_level(self, k: int, level: _LevelData, qp: LevelQP) -> LevelResult:
         """Back-end solve of one level's QP and verification of its answer."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -50,19 +51,19 @@ class ElbowConfig:
             if value is not None and (not math.isfinite(value) or value <= 0):
                 raise ConfigError(f"ElbowConfig.{key} must be a positive finite number or None, got {value!r}")
 
-    @property
+    @cached_property
     def half_width_rad(self) -> float:
         return math.radians(self.half_width_deg)
 
-    @property
+    @cached_property
     def safety_margin_rad(self) -> float:
         return math.radians(self.safety_margin_deg)
 
-    @property
+    @cached_property
     def alpha_per_rad(self) -> float:
         return self.alpha if self.alpha is not None else 12.0 / self.half_width_rad
 
-    @property
+    @cached_property
     def d_rad(self) -> float:
         return self.d if self.d is not None else 0.75 * self.half_width_rad
 
@@ -111,21 +112,29 @@ def clip_rom(ns0: float, half_width: float, interval: Interval, margin: float) -
     margin = _finite(margin, "margin")
     if margin < 0:
         raise InputError(f"margin must be >= 0 rad, got {margin}")
-    centre = 0.5 * (interval.lo + interval.hi)
-    ns0 = _finite(ns0, "ns0")
+    ns0, half_width = _finite(ns0, "ns0"), _finite(half_width, "half_width")
+    if half_width < 0:
+        raise InputError(f"half_width must be >= 0 rad, got {half_width}")
+    return ClippedRom(*clipped_bounds(ns0, half_width, interval.lo, interval.hi, interval.full_circle, margin))
+
+
+def clipped_bounds(ns0: float, half_width: float, lo: float, hi: float, full_circle: bool,
+                   margin: float) -> tuple[float, float, bool]:
+    """The arithmetic of :func:`clip_rom` on plain floats (rad), inputs taken as valid:
+    ``(lo, hi, empty)`` of ROM_t for the interval ``[lo, hi]`` (the controller's per-tick call)."""
+    centre = 0.5 * (lo + hi)
     ns0 = ns0 + 2 * math.pi * round((centre - ns0) / (2 * math.pi))
-    rom_lo, rom_hi = rom_bounds(ns0, half_width)
-    if interval.full_circle:
-        return ClippedRom(rom_lo, rom_hi)
-    safe_lo, safe_hi = interval.lo + margin, interval.hi - margin
+    rom_lo, rom_hi = ns0 - half_width, ns0 + half_width
+    if full_circle:
+        return rom_lo, rom_hi, False
+    safe_lo, safe_hi = lo + margin, hi - margin
     if safe_lo > safe_hi:
-        mid = 0.5 * (interval.lo + interval.hi)
-        return ClippedRom(mid, mid, True)
+        return centre, centre, True
     lo, hi = max(rom_lo, safe_lo), min(rom_hi, safe_hi)
     if lo > hi:
         point = safe_lo if rom_hi < safe_lo else safe_hi
-        return ClippedRom(point, point, True)
-    return ClippedRom(lo, hi)
+        return point, point, True
+    return lo, hi, False
 
 
 def stiffness(ns: float | np.ndarray, ns0: float, cfg: ElbowConfig) -> float | np.ndarray:

@@ -149,7 +149,9 @@ def _from_level_qp(qp: LevelQP, name: str, sequence: str, level: int, tick: int,
 
 class QPRecorder:
     """Records every QP a controller's hierarchical solver is asked, by wrapping
-    ``ctrl.qp.solve`` of that instance (nothing else is patched).
+    ``ctrl.qp.solve`` of that instance (nothing else is patched); while it records, the
+    controller's compiled tick is off (``ctrl.compiled_tick``: it would bypass ``solve``;
+    the general path gives the same QPs and answers, tests/test_tick.py).
 
     Use as a context manager; ``problems`` collects :class:`BenchProblem` of
     the ticks ``k`` with ``keep(k)`` true (default all), sequence name
@@ -177,10 +179,12 @@ class QPRecorder:
             return result
 
         self.ctrl.qp.solve = solve  # instance attribute shadows the method
+        self._compiled, self.ctrl.compiled_tick = self.ctrl.compiled_tick, False
         return self
 
     def __exit__(self, *exc) -> None:
         del self.ctrl.qp.solve
+        self.ctrl.compiled_tick = self._compiled
 
 
 # ----------------------------------------------------------- standard form

@@ -33,10 +33,15 @@ class TickState:
     arm_angle_gradient: np.ndarray  # (nq,) ∂ns/∂q
     wrist_sin: float  # |p_sw × z0| / |p_sw|: sine of the wrist's angle to the vertical
     elbow_offset: float  # distance (m) of the elbow centre from the shoulder–wrist line
+    pose: np.ndarray  # (12,) rotation entries (column-major) then position (m): for cheap comparisons
 
 
 class StateEvaluator:
-    """Evaluates :class:`TickState` from ``q`` with one CasADi call."""
+    """Evaluates :class:`TickState` from ``q`` with one CasADi call.
+
+    The function has a single output, every quantity stacked in one vector (``R`` and ``J``
+    column-major), so a tick copies one array and the state's fields are views of it.
+    """
 
     def __init__(self, cost: CostModel, compile: str | None = None) -> None:
         robot = cost.robot
@@ -44,18 +49,15 @@ class StateEvaluator:
         tool = sym.frame_placement(robot.tool_frame_id)
         ns, measures = arm_angle_expression(sym, elbow_points(robot))
         total = cost.expression
-        outputs = {
-            "R": tool.R,
-            "p": tool.p,
-            "J": sym.frame_jacobian(robot.tool_frame_id),
-            "c": total,
-            "dc": ca.gradient(total, sym.q),
-            "ns": ns,
-            "dns": ca.gradient(ns, sym.q),
-            "measures": measures,
-        }
+        parts = [tool.R, tool.p, sym.frame_jacobian(robot.tool_frame_id), total, ca.gradient(total, sym.q), ns,
+                 ca.gradient(ns, sym.q), measures]
+        stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
-        self._fn = FastFunction(sym.function(f"tick_{robot.name}", outputs), compile)
+        self._fn = FastFunction(sym.function(f"tick_{robot.name}", {"state": stacked}), compile)
+        n = robot.nq
+        ends = np.cumsum([9, 3, 6 * n, 1, n, 1, n, 2])
+        self._slices = [slice(a, b) for a, b in zip(np.r_[0, ends[:-1]], ends)]
+        self.size = int(ends[-1])
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until compiled code is used (benchmarks call this)."""
@@ -63,5 +65,8 @@ class StateEvaluator:
 
     def __call__(self, q: np.ndarray) -> TickState:
         """State at ``q`` (rad; assumed validated by the caller)."""
-        rot, pos, jac, c, dc, ns, dns, measures = self._fn(q)
-        return TickState(q, rot, pos, jac, c, dc, ns, dns, float(measures[0]), float(measures[1]))
+        flat = self._fn.flat(q)
+        rot, pos, jac, c, dc, ns, dns, measures = (flat[k] for k in self._slices)
+        n = q.shape[0]
+        return TickState(q, rot.reshape(3, 3, order="F"), pos, jac.reshape(6, n, order="F"), float(c[0]), dc,
+                         float(ns[0]), dns, float(measures[0]), float(measures[1]), flat[:12])

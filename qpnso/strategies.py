@@ -20,7 +20,7 @@ import numpy as np
 
 from qpnso.errors import ConfigError, QpnsoError
 from qpnso.hqp import Level
-from qpnso.linalg import nullspace_part
+from qpnso.tick import cost_step, low_pass, qp_nullspace_torque
 
 if TYPE_CHECKING:
     from qpnso.controller import Controller, ElbowState
@@ -193,17 +193,25 @@ class QPStrategy(Strategy):
     def stiffness(self, elbow) -> float:
         return elbow.stiffness
 
+    def __init__(self, controller: "Controller") -> None:
+        super().__init__(controller)
+        self.filtered_step = np.zeros(controller.robot.nq)
+        """State of the cost step's low-pass (rad/s), updated in place (the compiled tick shares it)."""
+
     def reset(self, q0: np.ndarray, state: "TickState") -> None:
-        self._step = None
+        self.filtered_step[:] = 0.0  # from rest
+
+    @property
+    def filter_alpha(self) -> float:
+        """Per-tick factor ``dt/max(τ_f, dt)`` of the low-pass (``cost_filter_time`` τ_f; 0: no filter)."""
+        tau = self.cfg.cost_filter_time
+        return self.cfg.dt / max(tau, self.cfg.dt) if tau > 0 else 0.0
 
     def level2(self, state, elbow) -> Level:
         cfg = self.cfg
-        step = cfg.cost_gain * state.cost_gradient
-        free = nullspace_part(state.jacobian, step)  # what level 2 can actually do
-        norm = float(np.sqrt(free @ free))
-        if norm > cfg.nullspace_speed_max:
-            step *= cfg.nullspace_speed_max / norm
-        step = self._smoothed(step)
+        step = cost_step(state.jacobian, state.cost_gradient, cfg.cost_gain, cfg.nullspace_speed_max)
+        self.filtered_step[:] = low_pass(self.filtered_step, step, self.filter_alpha)
+        step = self.filtered_step.copy()
         if elbow.dropped:
             return Level(H=self._identity, g=step)
         lo, hi = elbow.rom
@@ -212,20 +220,8 @@ class QPStrategy(Strategy):
         u = np.array([cfg.elbow_gain * (hi - elbow.ns)])
         return Level(H=self._identity, g=step, C=row, l=l, u=u, slack_weight=cfg.slack_weight)
 
-    def _smoothed(self, step: np.ndarray) -> np.ndarray:
-        """First-order low-pass of the cost step (time constant ``cost_filter_time``,
-        starting from rest): the null-space velocity has no steps, so the hand feels no jerk."""
-        tau = self.cfg.cost_filter_time
-        if tau <= 0:
-            return step
-        if self._step is None:
-            self._step = np.zeros_like(step)
-        self._step = self._step + (self.cfg.dt / max(tau, self.cfg.dt)) * (step - self._step)
-        return self._step
-
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
-        cfg = self.cfg
-        return elbow.stiffness * cfg.dt * dq_cmd + cfg.joint_damping * (dq_cmd - dq_meas)
+        return qp_nullspace_torque(dq_cmd, dq_meas, elbow.stiffness, self.cfg.dt, self.cfg.joint_damping)
 
 
 _STRATEGIES = {cls.name: cls for cls in (Damped, FixedPosture, ElbowUp, Gradient, RomModulation, QPStrategy)}

@@ -244,6 +244,7 @@ def test_failed_qp_falls_back_to_holding_the_tool(lwr_qp: Controller, monkeypatc
         return HQPResult(None, False, "level 1 of 2 infeasible: test", 0,
                          [LevelResult(LevelStatus.INFEASIBLE)], 0.0)
     monkeypatch.setattr(lwr_qp.qp, "solve", failing)
+    monkeypatch.setattr(lwr_qp, "compiled_tick", False)  # the compiled tick does not call qp.solve (test_tick.py)
     cmd = lwr_qp.step(q0)
     assert cmd.status & Status.QP_FAILED and not cmd.ok
     assert np.all(cmd.dq == 0) and np.all(np.isfinite(cmd.tau))

@@ -1,0 +1,215 @@
+"""The compiled tick (qpnso/tick.py): its kernels against independent computations, and the
+controller's compiled path against its general path (HierarchicalQP.solve) tick by tick."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import qpnso
+from qpnso import tick
+from qpnso.controller import Controller, ControllerConfig, Status
+from qpnso.hqp import LevelStatus, _Raw
+
+DT = 1e-3
+Q0 = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2])
+
+
+@pytest.fixture(scope="module")
+def robot() -> qpnso.Robot:
+    return qpnso.load_robot("lwr4p")
+
+
+def pair(robot, **cfg) -> tuple[Controller, Controller]:
+    """The same controller twice: compiled tick allowed, and general path only."""
+    fast = Controller(robot, ControllerConfig(strategy="qp", **cfg))
+    slow = Controller(robot, ControllerConfig(strategy="qp", compiled_tick=False, **cfg))
+    assert fast.compiled_tick and not slow.compiled_tick
+    return fast, slow
+
+
+def count_compiled(ctrl: Controller, monkeypatch) -> list[int]:
+    """Counts the ticks the compiled path answered (its return value is not None)."""
+    hits = [0]
+    original = ctrl._compiled
+
+    def spy(*args):
+        out = original(*args)
+        hits[0] += out is not None
+        return out
+    monkeypatch.setattr(ctrl, "_compiled", spy)
+    return hits
+
+
+def assert_same(a, b, tol: float = 1e-12) -> None:
+    np.testing.assert_allclose(a.dq, b.dq, rtol=0, atol=tol)
+    np.testing.assert_allclose(a.tau, b.tau, rtol=0, atol=1e3 * tol)
+    np.testing.assert_allclose(a.q_des, b.q_des, rtol=0, atol=tol)
+    assert a.status == b.status and a.message == b.message
+    assert a.rom == b.rom and a.interval == b.interval and a.arm_angle == b.arm_angle
+    np.testing.assert_allclose(a.tool_error, b.tool_error, rtol=0, atol=tol)
+
+
+# ------------------------------------------------------------------ kernels
+def random_rotation(rng: np.random.Generator, max_angle: float) -> np.ndarray:
+    axis = rng.normal(size=3)
+    return pin.exp3(axis / np.linalg.norm(axis) * rng.uniform(0, max_angle))
+
+
+def test_pose_error_is_pinocchio_log3() -> None:
+    rng = np.random.default_rng(0)
+    for scale in (1e-9, 1e-5, 1e-3, 0.1, 1.0, 3.0, tick.LOG3_MAX_ANGLE):
+        for _ in range(200):
+            R, R_ref = random_rotation(rng, np.pi), None
+            R_ref = random_rotation(rng, scale) @ R
+            p, p_ref = rng.normal(size=3), rng.normal(size=3)
+            e, ok = tick.pose_error(R, p, R_ref, p_ref)
+            assert ok
+            np.testing.assert_allclose(e[:3], p_ref - p, rtol=0, atol=1e-15)
+            np.testing.assert_allclose(e[3:], pin.log3(R_ref @ R.T), rtol=0, atol=1e-12)
+
+
+def test_pose_error_near_pi_is_refused_and_the_controller_uses_log3(robot) -> None:
+    R = np.eye(3)
+    R_ref = pin.exp3(np.array([0.0, 0.0, np.pi - 1e-4]))
+    _, ok = tick.pose_error(R, np.zeros(3), R_ref, np.zeros(3))
+    assert not ok
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    ctrl.reset(Q0)
+    state = ctrl.evaluate(Q0)
+    ctrl.ref_rotation = pin.exp3(np.array([0.0, 0.0, np.pi - 1e-4])) @ state.tool_rotation
+    np.testing.assert_allclose(ctrl._pose_error(state)[3:], [0, 0, np.pi - 1e-4], atol=1e-9)
+    cmd = ctrl.step(Q0)  # the compiled kernel refuses the pose, the general path answers
+    assert np.all(np.isfinite(cmd.dq)) and cmd.tool_error[1] == pytest.approx(np.pi - 1e-4, abs=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-3, 3), min_size=7, max_size=7))
+def test_velocity_bounds_keep_q_inside_its_limits(robot, q_list) -> None:
+    q = np.array(q_list)
+    gain = 20.0
+    lb, ub = tick.velocity_bounds(q, robot.q_min, robot.q_max, robot.dq_max, gain)
+    assert np.all(lb <= ub) and np.all(np.abs(lb) <= robot.dq_max) and np.all(np.abs(ub) <= robot.dq_max)
+    inside = (q >= robot.q_min) & (q <= robot.q_max)
+    for v in (lb, ub):  # one tick at either bound stays inside (γ·dt ≤ 1)
+        q1 = q + DT * v
+        assert np.all((q1[inside] >= robot.q_min[inside] - 1e-12) & (q1[inside] <= robot.q_max[inside] + 1e-12))
+    below = q < robot.q_min  # outside: pushed back (never further out)
+    assert np.all(lb[below] >= 0) and np.all(ub[q > robot.q_max] <= 0)
+
+
+def test_cost_step_saturates_its_null_space_part(robot) -> None:
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        q = robot.random_q(rng, margin=0.2)
+        J = robot.jacobian(q)
+        grad = rng.normal(size=7) * rng.uniform(0.01, 100)
+        step = tick.cost_step(J, grad, 10.0, 1.0)
+        null = (np.eye(7) - np.linalg.pinv(J) @ J) @ step
+        assert np.linalg.norm(null) <= 1.0 + 1e-9
+        np.testing.assert_allclose(np.cross(step[:3], grad[:3]), 0, atol=1e-9 * np.linalg.norm(grad) ** 2 * 100)
+        if np.linalg.norm((np.eye(7) - np.linalg.pinv(J) @ J) @ (10 * grad)) <= 1.0:
+            np.testing.assert_allclose(step, 10 * grad, rtol=1e-15)
+
+
+def test_low_pass() -> None:
+    prev, step = np.array([1.0, -1.0]), np.array([3.0, 1.0])
+    np.testing.assert_allclose(tick.low_pass(prev, step, 0.25), [1.5, -0.5])
+    out = tick.low_pass(prev, step, 0.0)
+    assert np.array_equal(out, step) and out is not step
+
+
+def test_qp_torque_is_gravity_plus_projected_impedance(robot) -> None:
+    rng = np.random.default_rng(2)
+    q = robot.random_q(rng, margin=0.2)
+    J = robot.jacobian(q)
+    A = pin.crba(robot.model, robot.data, q)
+    A = np.triu(A) + np.triu(A, 1).T
+    g = pin.computeGeneralizedGravity(robot.model, robot.data, q)
+    dq, dq_meas = rng.normal(size=7), rng.normal(size=7)
+    tau = tick.qp_torque(A, g, J, dq, dq_meas, 20.0, DT, 10.0)
+    Ai = np.linalg.inv(A)
+    Jbar = Ai @ J.T @ np.linalg.inv(J @ Ai @ J.T)
+    expected = g + (np.eye(7) - Jbar @ J).T @ (20.0 * DT * dq + 10.0 * (dq - dq_meas))
+    # JA⁻¹Jᵀ is regularised by 1e-12 of its trace (linalg.py): agreement to its conditioning
+    np.testing.assert_allclose(tau, expected, rtol=0, atol=1e-6 * np.linalg.norm(expected))
+
+
+# ------------------------------------------------------ compiled = general
+def test_held_tool_ticks_equal_the_general_path(robot, monkeypatch) -> None:
+    fast, slow = pair(robot)
+    hits = count_compiled(fast, monkeypatch)
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        q0 = robot.random_q(rng, margin=0.3)
+        fast.reset(q0), slow.reset(q0)
+        q = q0.copy()
+        for _ in range(400):
+            a, b = fast.step(q), slow.step(q)
+            assert_same(a, b)
+            q = q + DT * a.dq
+    assert hits[0] > 1000  # the compiled path did answer
+
+
+def test_moving_tool_and_measured_velocity_equal_the_general_path(robot, monkeypatch) -> None:
+    fast, slow = pair(robot)
+    hits = count_compiled(fast, monkeypatch)
+    fast.reset(Q0), slow.reset(Q0)
+    q, dq = Q0.copy(), np.zeros(7)
+    for k in range(1500):
+        twist = np.array([0.05 * np.sin(k * DT * 3), 0.03, -0.02, 0.1, 0.0, -0.2 * np.cos(k * DT)])
+        a, b = fast.step(q, dq=dq, tool_twist=twist), slow.step(q, dq=dq, tool_twist=twist)
+        assert_same(a, b, tol=1e-11)
+        dq = 0.9 * a.dq
+        q = q + DT * a.dq
+    assert hits[0] > 1000
+
+
+def test_offline_tool_pose_equals_the_general_path(robot) -> None:
+    fast, slow = pair(robot)
+    fast.reset(Q0), slow.reset(Q0)
+    pose = robot.tool_pose(Q0)
+    q = Q0.copy()
+    for k in range(300):
+        target = pin.SE3(pose.rotation, pose.translation + np.array([0.0, 1e-4 * k, 0.0]))
+        a, b = fast.step(q, tool_pose=target), slow.step(q, tool_pose=target)
+        assert_same(a, b, tol=1e-11)
+        q = q + DT * a.dq
+
+
+def test_joint_limit_cutting_the_line_takes_the_general_cascade(robot, monkeypatch) -> None:
+    """A tool motion the bounds cannot follow: the line misses the box, the compiled path steps aside."""
+    fast, slow = pair(robot)
+    hits = count_compiled(fast, monkeypatch)
+    fast.reset(Q0), slow.reset(Q0)
+    a = fast.step(Q0, tool_twist=np.array([5.0, 0, 0, 0, 0, 0]))
+    b = slow.step(Q0, tool_twist=np.array([5.0, 0, 0, 0, 0, 0]))
+    assert hits[0] == 0 and a.status & Status.TOOL_LIMITED
+    assert_same(a, b)
+
+
+def test_failed_level_two_holds_the_tool_as_the_general_path_does(robot, monkeypatch) -> None:
+    fast, slow = pair(robot)
+    for ctrl in (fast, slow):
+        ctrl.reset(Q0)
+        backend = ctrl.qp._backend
+        monkeypatch.setattr(backend, "solve_arrays",
+                            lambda *args: _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE"))
+    failures = fast.qp.stats.failures
+    a, b = fast.step(Q0), slow.step(Q0)
+    assert a.status & Status.QP_FAILED and not a.ok
+    assert "level 2 of 2 infeasible: proxsuite TEST_FAILURE" in a.message and "tool held" in a.message
+    assert_same(a, b)
+    assert fast.qp.stats.failures == failures + 1
+    J = robot.jacobian(Q0)
+    np.testing.assert_allclose(J @ a.dq, 0, atol=1e-12)  # tool held: level 1's least-norm answer
+    np.testing.assert_allclose(a.dq, np.linalg.pinv(J) @ (J @ a.dq), atol=1e-12)
+
+
+def test_strategies_other_than_qp_never_compile(robot) -> None:
+    for name in ("damped", "fixed", "gradient", "rom", "elbow-up"):
+        assert not Controller(robot, ControllerConfig(strategy=name)).compiled_tick
+    assert not Controller(robot, ControllerConfig(qp_settings=qpnso.QPSettings(line_fast_path=False))).compiled_tick

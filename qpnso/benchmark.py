@@ -103,37 +103,63 @@ def bench_interval(robot: Robot, n: int = 1000, seed: int = 0) -> list[Timing]:
 def held_tool_run(ctrl, q0: np.ndarray, n: int) -> np.ndarray:
     """Seconds per ``step`` over ``n`` ticks with the tool held, integrating ``q ← q + dt·dq``."""
     ctrl.reset(q0)
+    return held_tool_ticks(ctrl, q0)(n)
+
+
+def held_tool_ticks(ctrl, q0: np.ndarray) -> Callable[[int], np.ndarray]:
+    """A run with the tool held from ``q0`` (already reset), advanced by ``k`` ticks per call:
+    returns the seconds of each ``step``, integrating ``q ← q + dt·dq`` across calls."""
     q = q0.copy()
-    times = np.empty(n)
-    for i in range(n):
-        t0 = time.perf_counter()
-        cmd = ctrl.step(q)
-        times[i] = time.perf_counter() - t0
-        q = q + ctrl.config.dt * cmd.dq
-    return times
+    dt = ctrl.config.dt
+
+    def ticks(k: int) -> np.ndarray:
+        nonlocal q
+        times = np.empty(k)
+        for i in range(k):
+            t0 = time.perf_counter()
+            cmd = ctrl.step(q)
+            times[i] = time.perf_counter() - t0
+            q = q + dt * cmd.dq
+        return times
+    return ticks
+
+
+def interleaved(runs: dict[str, Callable[[int], np.ndarray]], n: int, chunk: int = 500) -> dict[str, np.ndarray]:
+    """``n`` timed calls of each run, taken in turns of ``chunk``: every row sees the same
+    machine (on a shared VM its speed drifts by 2× over seconds, measured)."""
+    out: dict[str, list] = {name: [] for name in runs}
+    for start in range(0, n, chunk):
+        for name, run in runs.items():
+            out[name].append(run(min(chunk, n - start)))
+    return {name: np.concatenate(parts) for name, parts in out.items()}
 
 
 def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None = None) -> list[Timing]:
-    """``Controller.step`` per strategy, tool held, from the sample configuration."""
+    """``Controller.step`` per strategy, tool held, from the sample configuration, with Pink's
+    ``solve_ik`` for reference when installed; the rows are timed in turns (:func:`interleaved`)."""
     from qpnso.controller import STRATEGIES, Controller, ControllerConfig
 
     strategies = strategies or STRATEGIES
     q0 = robot.sample_configuration()
-    out = []
+    runs, notes = {}, {}
     for name in strategies:
         ctrl = Controller(robot, ControllerConfig(strategy=name))
         ctrl.cost.wait_compiled()
         ctrl.evaluate.wait_compiled()
-        held_tool_run(ctrl, q0, 200)  # warm-up
-        out.append(Timing(f"step, strategy {name}", held_tool_run(ctrl, q0, n), note="tool held"))
-    pink = bench_pink(robot, q0, n)
+        ctrl.reset(q0)
+        runs[f"step, strategy {name}"] = held_tool_ticks(ctrl, q0)
+        notes[f"step, strategy {name}"] = "tool held" + (", compiled tick" if ctrl.compiled_tick else "")
+    pink = pink_ticks(robot, q0)
     if pink is not None:
-        out.append(pink)
-    return out
+        runs["Pink solve_ik (FrameTask + PostureTask)"], notes["Pink solve_ik (FrameTask + PostureTask)"] = pink
+    for run in runs.values():
+        run(200)  # warm-up
+    return [Timing(name, seconds, note=notes[name]) for name, seconds in interleaved(runs, n).items()]
 
 
-def bench_pink(robot: Robot, q0: np.ndarray, n: int) -> Timing | None:
-    """Pink's ``solve_ik`` with a FrameTask and a PostureTask (same robot, ProxQP), if installed."""
+def pink_ticks(robot: Robot, q0: np.ndarray) -> tuple[Callable[[int], np.ndarray], str] | None:
+    """Pink's ``solve_ik`` with a FrameTask and a PostureTask (same robot, ProxQP), if installed:
+    a run advanced by ``k`` calls per call (seconds of each), and its note."""
     try:
         import pink
         from pink.tasks import FrameTask, PostureTask
@@ -153,4 +179,4 @@ def bench_pink(robot: Robot, q0: np.ndarray, n: int) -> Timing | None:
         v = pink.solve_ik(config, tasks, 1e-3, solver="proxqp")
         config.integrate_inplace(v, 1e-3)
 
-    return Timing("Pink solve_ik (FrameTask + PostureTask)", time_calls(call, n), note=f"pink, proxqp, pin {pin.__version__}")
+    return (lambda k: time_calls(call, k, warmup=0)), f"pink, proxqp, pin {pin.__version__}"

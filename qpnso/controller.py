@@ -310,7 +310,8 @@ class Controller:
             self.ref_rotation, self.ref_position = tool_pose.rotation.copy(), tool_pose.translation.copy()
         state = self.evaluate(qv)
         elbow = self._elbow(state)
-        status |= elbow.status
+        if elbow.status:  # (enum.Flag arithmetic costs microseconds: skipped when there is nothing to add)
+            status |= elbow.status
         tick = self._compiled(state, elbow, twist, dq_meas) if self.compiled_tick and not elbow.dropped else None
         if tick is None:
             tick = self._general(state, elbow, twist, dq_meas)
@@ -321,7 +322,7 @@ class Controller:
         self.step_count += 1
         return Command(
             dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
-            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost, status=status | qp_status,
+            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost, status=status | qp_status if qp_status else status,
             solve_time=solve_time, tick_time=time.perf_counter() - t0,
             tool_error=tool_error, message=message,
         )

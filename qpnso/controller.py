@@ -241,8 +241,7 @@ class Controller:
         st = self.qp.settings
         self._qp_tol = np.array([st.rank_tol, st.damping_threshold, st.regularization or 0.0])
         self._line = LineTickBuffers(self.strategy.filtered_step) if self._can_compile else None
-        self._no_twist = np.zeros(6)
-        self._no_twist.flags.writeable = False
+        self._no_twist = np.zeros(6)  # never written (writable: a read-only array is another Numba type)
         self._warm_up()
 
     @property
@@ -377,7 +376,7 @@ class Controller:
     def _check_input(self, q: object) -> tuple[np.ndarray, Status]:
         """Shape/NaN → InputError; outside the limits is recovered (flagged), not refused."""
         qv = q if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape \
-            else as_vector(q, self.robot.nq, "q")
+            and q.flags.c_contiguous and q.flags.writeable else as_vector(q, self.robot.nq, "q")
         code = limits_status(qv, self._q_low, self._q_high)
         if code == 2:
             as_vector(qv, self.robot.nq, "q")  # raises, naming the entries

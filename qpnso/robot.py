@@ -68,6 +68,8 @@ def as_vector(x: object, n: int, name: str) -> np.ndarray:
     if total - total != 0.0 and not np.all(np.isfinite(v)):
         bad = np.flatnonzero(~np.isfinite(v)).tolist()
         raise InputError(f"{name} contains NaN or inf at index {bad}")
+    if not (v.flags.c_contiguous and v.flags.writeable):  # one array type for the tick's Numba kernels:
+        v = v.copy()  # a strided view or read-only buffer would load or compile another version mid-loop
     return v
 
 

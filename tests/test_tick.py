@@ -213,3 +213,24 @@ def test_strategies_other_than_qp_never_compile(robot) -> None:
     for name in ("damped", "fixed", "gradient", "rom", "elbow-up"):
         assert not Controller(robot, ControllerConfig(strategy=name)).compiled_tick
     assert not Controller(robot, ControllerConfig(qp_settings=qpnso.QPSettings(line_fast_path=False))).compiled_tick
+
+
+def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
+    """Whatever array kind the user passes (list, strided view, read-only, tuple), the tick's kernels
+    run the versions the constructor's dry tick compiled: none is compiled or loaded mid-loop."""
+    from qpnso import linalg
+
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    kernels = [tick.qp_line_tick, tick.qp_torque, tick.limits_status, tick.max_abs_difference, linalg.least_norm_line]
+    before = [len(k.signatures) for k in kernels]
+    ctrl.reset(Q0)
+    wide = np.tile(Q0[:, None], (1, 3))  # a column of it is a strided view
+    frozen = Q0.copy()
+    frozen.flags.writeable = False
+    twist = np.zeros((6, 2))[:, 0]
+    for q in (list(Q0), wide[:, 1], frozen, tuple(Q0), Q0):
+        cmd = ctrl.step(q, dq=np.zeros((7, 2))[:, 1], tool_twist=twist)
+        assert np.all(np.isfinite(cmd.dq))
+    pose = robot.tool_pose(Q0)
+    ctrl.step(Q0, tool_pose=pose)
+    assert [len(k.signatures) for k in kernels] == before

@@ -38,7 +38,7 @@ import pinocchio as pin
 
 from qpnso.costs import CostModel, CostWeights
 from qpnso.errors import ConfigError, QpnsoError
-from qpnso.hqp import HierarchicalQP, Level, QPSettings
+from qpnso.hqp import HierarchicalQP, Level, QPSettings, level_failure
 from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.intervals import Interval, continuity_interval
 from qpnso.linalg import dynamically_consistent_projection
@@ -60,6 +60,17 @@ TOOL_MOVED_TOL = 1e-6
 """m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
 cached continuity interval (its ends move by ~1e-6 rad at most, against a safety margin of degrees)."""
 TWO_PI = 2.0 * math.pi
+
+
+def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Status:
+    """Flags of a solved tick: level 1's residual (``TOOL_LIMITED``) and the elbow rows' slack
+    (``ELBOW_SLACK``) against what is reported."""
+    status = Status.OK
+    if tool_residual is not None and tool_residual > TOOL_RESIDUAL_REPORTED:
+        status |= Status.TOOL_LIMITED
+    if slack is not None and slack.size and slack.max() > ELBOW_SLACK_REPORTED:
+        status |= Status.ELBOW_SLACK
+    return status
 
 
 def _norm(v: np.ndarray) -> float:
@@ -259,7 +270,7 @@ class Controller:
 
     def _warm_up(self) -> None:
         """One dry tick at the robot's sample configuration, then forgotten: the Numba kernels of
-        :mod:`qpnso.linalg` and :mod:`qpnso.hqp` compile here (seconds, once per machine, then
+        :mod:`qpnso.linalg`, :mod:`qpnso.hqp` and :mod:`qpnso.tick` compile here (seconds, once per machine, then
         cached on disk), never in the user's first control tick."""
         q = self.robot.sample_configuration()
         self.reset(q)
@@ -321,7 +332,8 @@ class Controller:
         self.step_count += 1
         return Command(
             dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
-            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost, status=status | qp_status if qp_status else status,
+            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost,
+            status=status | qp_status if qp_status else status,
             solve_time=solve_time, tick_time=time.perf_counter() - t0,
             tool_error=tool_error, message=message,
         )
@@ -352,19 +364,11 @@ class Controller:
         if code != LINE_OK:
             return None
         second = self.qp.solve_line_level(buf.H, buf.g, buf.C, buf.l, buf.u, buf.box_l, buf.box_u, buf.x0, buf.d, 1)
-        stats = self.qp.stats
-        stats.solves += 1
-        status, message = Status.OK, ""
+        self.qp.count_solve(second.ok)
         if second.ok:
-            dq_cmd = second.x
-            if second.slack[0] > ELBOW_SLACK_REPORTED:
-                status = Status.ELBOW_SLACK
+            dq_cmd, status, message = second.x, _answer_status(residual, second.slack), ""
         else:
-            stats.failures += 1
-            dq_cmd, status = buf.x1.copy(), Status.QP_FAILED
-            message = f"QP failed (level 2 of 2 {second.status}: {second.message}): tool held, no null-space motion"
-        if residual > TOOL_RESIDUAL_REPORTED:
-            status |= Status.TOOL_LIMITED
+            dq_cmd, status, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
         solve_time = time.perf_counter() - t1
         gravity = pin.computeGeneralizedGravity(r.model, r.data, state.q)
         a = pin.crba(r.model, r.data, state.q)
@@ -465,18 +469,15 @@ class Controller:
     def _command_velocity(self, result) -> tuple[np.ndarray, Status, str]:
         """The QP's answer, or the safe fallback: level-1 solution, else zero."""
         if result.ok:
-            status = Status.OK
-            tool = result.levels[0].residual
-            if tool is not None and tool > TOOL_RESIDUAL_REPORTED:
-                status |= Status.TOOL_LIMITED
-            slack = result.levels[-1].slack
-            if slack is not None and slack.size and slack.max() > ELBOW_SLACK_REPORTED:
-                status |= Status.ELBOW_SLACK
-            return result.x, status, ""
-        fallback = result.x if result.x is not None and np.all(np.isfinite(result.x)) else None
-        if fallback is None:
-            return np.zeros(self.robot.nq), Status.QP_FAILED, f"QP failed ({result.status}): joints stopped"
-        return fallback, Status.QP_FAILED, f"QP failed ({result.status}): tool held, no null-space motion"
+            return result.x, _answer_status(result.levels[0].residual, result.levels[-1].slack), ""
+        return self._fallback(result.status, result.x)
+
+    def _fallback(self, why: str, x: np.ndarray | None) -> tuple[np.ndarray, Status, str]:
+        """The safe command after a failed QP (``why`` as :attr:`HQPResult.status` words it): the
+        level-1 answer ``x`` (tool held, no null-space motion) if finite, else zero (joints stopped)."""
+        if x is None or not np.all(np.isfinite(x)):
+            return np.zeros(self.robot.nq), Status.QP_FAILED, f"QP failed ({why}): joints stopped"
+        return x, Status.QP_FAILED, f"QP failed ({why}): tool held, no null-space motion"
 
     def _torque(self, state: TickState, dq_cmd: np.ndarray, dq_meas: np.ndarray, elbow: ElbowState) -> np.ndarray:
         """τ = g(q) + Nᵀ τ_null with N = I − J̄J, J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ (METHOD §2, §7;

@@ -634,20 +634,39 @@ def line_segment(x0, d, lb, ub):  # type: ignore[no-untyped-def]
     return t_lo, t_hi
 
 
+LINE_OK = 0
+LINE_SINGULAR = 1  # a singular value may be below the damping threshold: no line (damped cascade)
+LINE_CUT = 2  # the bounds miss the line of exact solutions (a bound binds the task: the QP decides)
+
+
+@njit(cache=True)
+def task_line(A, b, lb, ub, rank_tol, damping):  # type: ignore[no-untyped-def]
+    """``(code, x0, d, t_lo, t_hi)``: the exact solutions ``x0 + t·d``, ``t ∈ [t_lo, t_hi]``, of a
+    plain (n−1)×n task ``A x = b`` within ``lb ≤ x ≤ ub`` (module docstring, *line fast path*);
+    ``code`` :data:`LINE_SINGULAR` when ``σ_min`` may be below ``damping`` (``1/‖R⁻¹‖_F ≤ σ_min`` is
+    the test: conservative by at most √(n−1)), :data:`LINE_CUT` when the bounds miss the line."""
+    x0, d, sigma_floor = least_norm_line(A, b)
+    if not sigma_floor >= max(damping, rank_tol * max(1.0, math.sqrt(np.sum(A * A)))):
+        return LINE_SINGULAR, x0, d, 0.0, 0.0
+    t_lo, t_hi = line_segment(x0, d, lb, ub)
+    return (LINE_OK if t_lo <= t_hi else LINE_CUT), x0, d, t_lo, t_hi
+
+
+@njit(cache=True)
+def least_norm_point(x0, d, t_lo, t_hi):  # type: ignore[no-untyped-def]
+    """The least-norm point of the segment ``x0 + t·d``, ``t ∈ [t_lo, t_hi]`` (``x0 ⊥ d``): level 1's answer."""
+    return x0 + min(max(0.0, t_lo), t_hi) * d
+
+
 def _task_line(data: _LevelData, lb: np.ndarray, ub: np.ndarray, settings: QPSettings) -> _Line | None:
-    """Level 1 in closed form (module docstring, *line fast path*), or None when it does not apply:
-    not a plain task of n − 1 rows, a singular value that may be below the damping threshold
-    (``1/‖R⁻¹‖_F ≤ σ_min`` is the test: conservative by at most √(n−1)), or bounds that miss the
-    line (a bound binds the task: the QP decides)."""
+    """Level 1 in closed form (:func:`task_line`), or None when it does not apply: not a plain task
+    of n − 1 rows, a singular value that may be below the damping threshold, or bounds that miss the line."""
     Aw = data.Aw
     if Aw is None or data.H is not None or data.g is not None or data.C is not None \
             or Aw.shape[0] != Aw.shape[1] - 1:
         return None
-    x0, d, sigma_floor = least_norm_line(Aw, data.bw)
-    if not sigma_floor >= max(settings.damping_threshold, settings.rank_tol * max(1.0, math.sqrt(np.sum(Aw * Aw)))):
-        return None
-    t_lo, t_hi = line_segment(x0, d, lb, ub)
-    return _Line(x0, d, t_lo, t_hi) if t_lo <= t_hi else None
+    code, x0, d, t_lo, t_hi = task_line(Aw, data.bw, lb, ub, settings.rank_tol, settings.damping_threshold)
+    return _Line(x0, d, t_lo, t_hi) if code == LINE_OK else None
 
 
 @njit(cache=True)
@@ -992,7 +1011,7 @@ class HierarchicalQP:
     def _solve_on_line(self, data: list[_LevelData], line: _Line) -> list[LevelResult]:
         """Line fast path (module docstring): level 1 in closed form, level 2 (if any) on the line."""
         t1 = time.perf_counter()
-        x1 = line.x0 + min(max(0.0, line.t_lo), line.t_hi) * line.direction  # least-norm point of level 1
+        x1 = least_norm_point(line.x0, line.direction, line.t_lo, line.t_hi)
         first = LevelResult(LevelStatus.SOLVED, x=x1, residual=_residual(data[0], x1), iterations=0,
                             message="closed form: the task's exact solutions meet the bounds on a line")
         t2 = time.perf_counter()
@@ -1015,7 +1034,7 @@ class HierarchicalQP:
         ``x = x0 + t·direction``, rad/s): solved on the back end's persistent level-2 object, the
         answer checked (box on ``t`` and hard rows within ``feasibility_tol``) and the soft rows'
         slack reported; ``residual`` is left to the caller.  :meth:`solve` uses it, and so does the
-        controller's compiled tick (:mod:`qpnso.tick`), which counts its own ticks in ``stats``."""
+        controller's compiled tick (:mod:`qpnso.tick`), which counts its ticks with :meth:`count_solve`."""
         if isinstance(self._backend, _ProxSuiteBackend) and self.settings.box_constraints:
             raw = self._backend.solve_arrays(1, H, g, C, l, u, box_l, box_u)
         else:
@@ -1034,6 +1053,13 @@ class HierarchicalQP:
         return LevelResult(LevelStatus.SOLVED, x=x, slack=slack if n_slack else None, iterations=raw.iterations,
                            message=raw.message)
 
+    def count_solve(self, ok: bool) -> None:
+        """Count one cascade in ``stats`` (:meth:`solve` does; so does a caller that solves the
+        line's level 2 itself through :meth:`solve_line_level`, the controller's compiled tick)."""
+        self.stats.solves += 1
+        if not ok:
+            self.stats.failures += 1
+
     def _solve_level(self, k: int, level: _LevelData, qp: LevelQP) -> LevelResult:
         """Back-end solve of one level's QP and verification of its answer."""
         t_level = time.perf_counter()
@@ -1050,12 +1076,8 @@ class HierarchicalQP:
         failed = None if results[-1].ok else len(results) - 1
         x_good = results[-1].x if failed is None else (results[-2].x if len(results) > 1 else None)
         results += [LevelResult(LevelStatus.SKIPPED) for _ in range(len(results), n_levels)]
-        self.stats.solves += 1
-        if failed is None:
-            status = "solved"
-        else:
-            self.stats.failures += 1
-            status = f"level {failed + 1} of {n_levels} {results[failed].status}: {results[failed].message}"
+        self.count_solve(failed is None)
+        status = "solved" if failed is None else level_failure(failed, n_levels, results[failed])
         return HQPResult(x=None if x_good is None else x_good.copy(), ok=failed is None, status=status,
                          failed_level=failed, levels=results, solve_time_s=time.perf_counter() - t0)
 
@@ -1089,6 +1111,11 @@ class HierarchicalQP:
         x = qp.x_prev + d
         return LevelResult(LevelStatus.SOLVED, x=x, residual=_residual(level, x), slack=slack,
                            iterations=raw.iterations, message=raw.message)
+
+
+def level_failure(k: int, n_levels: int, result: LevelResult) -> str:
+    """How :attr:`HQPResult.status` names the first failed level ``k`` (0-based) of ``n_levels``."""
+    return f"level {k + 1} of {n_levels} {result.status}: {result.message}"
 
 
 def _residual(level: _LevelData, x: np.ndarray) -> float | None:

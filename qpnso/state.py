@@ -57,7 +57,6 @@ class StateEvaluator:
         n = robot.nq
         ends = np.cumsum([9, 3, 6 * n, 1, n, 1, n, 2])
         self._slices = [slice(a, b) for a, b in zip(np.r_[0, ends[:-1]], ends)]
-        self.size = int(ends[-1])
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until compiled code is used (benchmarks call this)."""

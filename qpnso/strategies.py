@@ -20,7 +20,7 @@ import numpy as np
 
 from qpnso.errors import ConfigError, QpnsoError
 from qpnso.hqp import Level
-from qpnso.tick import cost_step, low_pass, qp_nullspace_torque
+from qpnso.tick import cost_step, elbow_row_bounds, low_pass, qp_nullspace_torque
 
 if TYPE_CHECKING:
     from qpnso.controller import Controller, ElbowState
@@ -216,8 +216,7 @@ class QPStrategy(Strategy):
             return Level(H=self._identity, g=step)
         lo, hi = elbow.rom
         row = state.arm_angle_gradient.reshape(1, -1)
-        l = np.array([cfg.elbow_gain * (lo - elbow.ns)])
-        u = np.array([cfg.elbow_gain * (hi - elbow.ns)])
+        l, u = elbow_row_bounds(elbow.ns, lo, hi, cfg.elbow_gain)
         return Level(H=self._identity, g=step, C=row, l=l, u=u, slack_weight=cfg.slack_weight)
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:

@@ -24,18 +24,16 @@ import math
 import numpy as np
 from numba import njit
 
-from qpnso.hqp import line_qp_arrays, line_segment
-from qpnso.linalg import dynamically_consistent_projection, least_norm_line, nullspace_part
+from qpnso.hqp import LINE_OK, least_norm_point, line_qp_arrays, task_line
+from qpnso.linalg import dynamically_consistent_projection, nullspace_part
 
 LOG3_MAX_ANGLE = math.pi - 1e-3
 """rad: :func:`pose_error` reports (``ok`` False) a rotation error closer to π than this, where
 its axis is ill-conditioned; the caller then uses ``pinocchio.log3``."""
 
-# codes of qp_line_tick
-LINE_OK = 0
-LINE_NO_POSE = 1  # rotation error too close to π for the kernel's log₃
-LINE_SINGULAR = 2  # the tool task is near-singular: no line (damped general path)
-LINE_CUT = 3  # the joint bounds miss the line of exact solutions: the general cascade decides
+LINE_NO_POSE = 3
+"""A code of :func:`qp_line_tick` besides those of :func:`qpnso.hqp.task_line`: the rotation error is
+too close to π for the kernel's log₃."""
 
 
 @njit(cache=True)
@@ -114,6 +112,13 @@ def low_pass(previous, step, alpha):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def elbow_row_bounds(ns, rom_lo, rom_hi, gain):  # type: ignore[no-untyped-def]
+    """``(l, u)`` (1,) of the elbow row ``ξ(ns_lo − ns) ≤ ∇nsᵀ q̇ ≤ ξ(ns_hi − ns)`` (rad/s): the velocity
+    damper that keeps the arm angle in ROM_t, or brings it back at rate ξ."""
+    return np.array([gain * (rom_lo - ns)]), np.array([gain * (rom_hi - ns)])
+
+
+@njit(cache=True)
 def qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
     """The ``qp`` strategy's null-space impedance ``K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)`` (N·m)."""
     return stiffness * dt * dq_cmd + damping * (dq_cmd - dq_meas)
@@ -157,20 +162,16 @@ def qp_line_tick(q, R, p, J, cost_gradient, arm_angle_gradient, R_ref, p_ref, tw
     if not ok:
         return LINE_NO_POSE, e_pos, e_rot, 0.0
     b1 = twist + gains[0] * e
-    x0, d, sigma_floor = least_norm_line(J, b1)
     rank_tol, damping, reg = qp_tol[0], qp_tol[1], qp_tol[2]
-    if not sigma_floor >= max(damping, rank_tol * max(1.0, math.sqrt(np.sum(J * J)))):
-        return LINE_SINGULAR, e_pos, e_rot, 0.0
     lb, ub = velocity_bounds(q, q_min, q_max, dq_max, gains[1])
-    t_lo, t_hi = line_segment(x0, d, lb, ub)
-    if not t_lo <= t_hi:
-        return LINE_CUT, e_pos, e_rot, 0.0
-    x1 = x0 + min(max(0.0, t_lo), t_hi) * d
+    code, x0, d, t_lo, t_hi = task_line(J, b1, lb, ub, rank_tol, damping)
+    if code != LINE_OK:
+        return code, e_pos, e_rot, 0.0
+    x1 = least_norm_point(x0, d, t_lo, t_hi)
     r = J @ x1 - b1
     step[:] = low_pass(step, cost_step(J, cost_gradient, gains[2], gains[3]), gains[4])
     row = arm_angle_gradient.reshape(1, n).copy()
-    lo = np.array([gains[5] * (rom_lo - ns)])
-    hi = np.array([gains[5] * (rom_hi - ns)])
+    lo, hi = elbow_row_bounds(ns, rom_lo, rom_hi, gains[5])
     empty, none = np.zeros(0), np.zeros((0, n))
     H[:], g[:], C[:], l[:], u[:], box_l[:], box_u[:], _ = line_qp_arrays(
         d, x0, t_lo, t_hi, none, empty, np.eye(n), step, row, lo, hi, 1, gains[6], reg, rank_tol, damping)

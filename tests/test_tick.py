@@ -53,6 +53,16 @@ def assert_same(a, b, tol: float = 1e-12) -> None:
     np.testing.assert_allclose(a.tool_error, b.tool_error, rtol=0, atol=tol)
 
 
+def held_both(fast: Controller, slow: Controller, q0: np.ndarray, ticks: int) -> None:
+    """Both controllers from ``q0`` with the tool held, the same ``q`` each tick: same commands."""
+    fast.reset(q0), slow.reset(q0)
+    q = q0.copy()
+    for _ in range(ticks):
+        a, b = fast.step(q), slow.step(q)
+        assert_same(a, b)
+        q = q + DT * a.dq
+
+
 # ------------------------------------------------------------------ kernels
 def random_rotation(rng: np.random.Generator, max_angle: float) -> np.ndarray:
     axis = rng.normal(size=3)
@@ -144,13 +154,7 @@ def test_held_tool_ticks_equal_the_general_path(robot, monkeypatch) -> None:
     hits = count_compiled(fast, monkeypatch)
     rng = np.random.default_rng(3)
     for _ in range(3):
-        q0 = robot.random_q(rng, margin=0.3)
-        fast.reset(q0), slow.reset(q0)
-        q = q0.copy()
-        for _ in range(400):
-            a, b = fast.step(q), slow.step(q)
-            assert_same(a, b)
-            q = q + DT * a.dq
+        held_both(fast, slow, robot.random_q(rng, margin=0.3), 400)
     assert hits[0] > 1000  # the compiled path did answer
 
 
@@ -209,6 +213,37 @@ def test_failed_level_two_holds_the_tool_as_the_general_path_does(robot, monkeyp
     np.testing.assert_allclose(a.dq, np.linalg.pinv(J) @ (J @ a.dq), atol=1e-12)
 
 
+def test_singular_tool_task_takes_the_damped_general_path(robot, monkeypatch) -> None:
+    """Joints 2 and 6 at zero align axes 1, 3 and 5, 7: rank 5, no line; the damped cascade answers."""
+    fast, slow = pair(robot)
+    hits = count_compiled(fast, monkeypatch)
+    q0 = Q0.copy()
+    q0[1] = q0[5] = 0.0
+    assert np.linalg.svd(robot.jacobian(q0), compute_uv=False)[-1] < 1e-6
+    held_both(fast, slow, q0, 20)
+    assert hits[0] == 0
+
+
+def test_non_finite_level_two_answer_holds_the_tool(robot, monkeypatch) -> None:
+    fast, slow = pair(robot)
+    for ctrl in (fast, slow):
+        ctrl.reset(Q0)
+        monkeypatch.setattr(ctrl.qp._backend, "solve_arrays",
+                            lambda *args: _Raw(np.array([np.nan, 0.0]), LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED"))
+    a, b = fast.step(Q0), slow.step(Q0)
+    assert a.status & Status.QP_FAILED and "non-finite" in a.message and "tool held" in a.message
+    assert np.all(np.isfinite(a.dq)) and np.all(np.isfinite(a.tau))
+    assert_same(a, b)
+
+
+def test_compiled_tick_with_a_qpsolvers_back_end_equals_the_general_path(robot, monkeypatch) -> None:
+    """The compiled tick hands its line QP to any back end (here DAQP, exact active set)."""
+    fast, slow = pair(robot, qp_backend="daqp")
+    hits = count_compiled(fast, monkeypatch)
+    held_both(fast, slow, Q0, 200)
+    assert hits[0] == 200
+
+
 def test_strategies_other_than_qp_never_compile(robot) -> None:
     for name in ("damped", "fixed", "gradient", "rom", "elbow-up"):
         assert not Controller(robot, ControllerConfig(strategy=name)).compiled_tick
@@ -218,10 +253,11 @@ def test_strategies_other_than_qp_never_compile(robot) -> None:
 def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
     """Whatever array kind the user passes (list, strided view, read-only, tuple), the tick's kernels
     run the versions the constructor's dry tick compiled: none is compiled or loaded mid-loop."""
-    from qpnso import linalg
+    from qpnso import hqp, linalg
 
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
-    kernels = [tick.qp_line_tick, tick.qp_torque, tick.limits_status, tick.max_abs_difference, linalg.least_norm_line]
+    kernels = [tick.qp_line_tick, tick.qp_torque, tick.limits_status, tick.max_abs_difference, linalg.least_norm_line,
+               hqp.task_line, hqp.least_norm_point]
     before = [len(k.signatures) for k in kernels]
     ctrl.reset(Q0)
     wide = np.tile(Q0[:, None], (1, 3))  # a column of it is a strided view

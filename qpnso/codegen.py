@@ -148,6 +148,15 @@ class FastFunction:
             self._run(inputs)
             return self._out[0].copy()
 
+    def evaluate_in_place(self, x: np.ndarray) -> np.ndarray:
+        """For a function of one dense vector input ``x``: the first output's entries in the
+        function's own buffer, not copied, valid until the next evaluation (the compiled tick reads
+        it at once)."""
+        with self._lock:
+            self._in[0][:] = x
+            self._evaluate()
+            return self._out[0]
+
     def _run(self, inputs: tuple) -> None:
         for dst, src in zip(self._in, inputs):
             dst[:] = src if isinstance(src, np.ndarray) and src.ndim == 1 else np.ravel(src, order="F")

@@ -15,10 +15,11 @@
 
 For the ``qp`` strategy, whenever the QP's line fast path applies (a full-rank
 tool Jacobian whose exact solutions meet the joint bounds: nearly every tick),
-steps 3–4 run as the *compiled tick* (:mod:`qpnso.tick`): one Numba call from
-the state to the level-2 QP, the same persistent ProxSuite object, one Numba
-call for the torque — the general path's answer to round-off, at a fraction of
-its Python overhead.  ``Controller.compiled_tick = False`` (or
+steps 2–4 run as the *compiled tick* (:mod:`qpnso.tick`): one Numba call from
+the state (read in place) through the elbow to the level-2 QP, the same
+persistent ProxSuite object, one Numba call for the checks, the command and the
+torque — the general path's answer to round-off, at a fraction of its Python
+overhead.  ``Controller.compiled_tick = False`` (or
 ``ControllerConfig(compiled_tick=False)``) always takes the general path.
 
 A failed or infeasible QP never reaches the robot: the command falls back to
@@ -38,39 +39,31 @@ import pinocchio as pin
 
 from qpnso.costs import CostModel, CostWeights
 from qpnso.errors import ConfigError, QpnsoError
-from qpnso.hqp import HierarchicalQP, Level, QPSettings, level_failure
+from qpnso.hqp import LINE_ANSWER_OK, HierarchicalQP, Level, LevelStatus, QPSettings, level_failure
 from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
-from qpnso.intervals import Interval, continuity_interval
+from qpnso.intervals import continuity_interval
 from qpnso.linalg import dynamically_consistent_projection
 from qpnso.robot import Robot, as_vector
-from qpnso.rom import ElbowConfig, clipped_bounds, stiffness
-from qpnso.state import StateEvaluator, TickState
-from qpnso.tick import (LINE_OK, LineTickBuffers, limits_status, max_abs_difference, pose_error, qp_line_tick,
-                         qp_torque, velocity_bounds)
-
-TOOL_RESIDUAL_REPORTED = 1e-6
-"""m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
-the tool's motion) is flagged ``TOOL_LIMITED``."""
-ELBOW_SLACK_REPORTED = 1e-3
-"""rad/s: an elbow row violated by more than this is flagged ``ELBOW_SLACK``.  A soft
-row held by the cost is always violated by about (cost force)/(2·slack_weight) ≈ 1e-5."""
-
-
-TOOL_MOVED_TOL = 1e-6
-"""m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
-cached continuity interval (its ends move by ~1e-6 rad at most, against a safety margin of degrees)."""
-TWO_PI = 2.0 * math.pi
-
+from qpnso.rom import ElbowConfig, stiffness
+from qpnso.state import StateEvaluator, TickState, state_views
+from qpnso.tick import (ELBOW_SLACK_REPORTED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_INTERVAL_STALE,  # noqa: F401
+                         FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, LINE_OK, NS,
+                         TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, TOOL_MOVED_TOL,
+                         TOOL_RESIDUAL_REPORTED, LineTickBuffers, answer_bits, elbow_advance, elbow_bounds,
+                         elbow_memory, elbow_parameters, limits_status, pose_error, qp_tick, qp_tick_answer, qp_torque,
+                         store_interval, velocity_bounds)
 
 def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Status:
     """Flags of a solved tick: level 1's residual (``TOOL_LIMITED``) and the elbow rows' slack
-    (``ELBOW_SLACK``) against what is reported."""
-    status = Status.OK
-    if tool_residual is not None and tool_residual > TOOL_RESIDUAL_REPORTED:
-        status |= Status.TOOL_LIMITED
-    if slack is not None and slack.size and slack.max() > ELBOW_SLACK_REPORTED:
-        status |= Status.ELBOW_SLACK
-    return status
+    (``ELBOW_SLACK``) against what is reported (:func:`qpnso.tick.answer_bits`)."""
+    bits = answer_bits(-1.0 if tool_residual is None else tool_residual,
+                       slack.max() if slack is not None and slack.size else -1.0)
+    return Status(bits) if bits else Status.OK
+
+
+def _status(bits: int) -> "Status":
+    """The :class:`Status` of a kernel's status bits (``Status.OK``, without a lookup, for none)."""
+    return Status(bits) if bits else Status.OK
 
 
 def _norm(v: np.ndarray) -> float:
@@ -79,6 +72,7 @@ def _norm(v: np.ndarray) -> float:
 
 
 _WRIST_SIN_MIN = float(np.sin(np.radians(WRIST_CONE_DEG)))
+_ELBOW_BITS = FLAG_INTERVAL_STALE | FLAG_ROM_EMPTY
 STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom")
 
 
@@ -86,13 +80,13 @@ class Status(enum.Flag):
     """What happened in a tick; several flags may be set at once."""
 
     OK = 0
-    QP_FAILED = enum.auto()  # a QP level failed: safe fallback command
-    ELBOW_DROPPED = enum.auto()  # arm angle singular: elbow constraints dropped
-    ELBOW_SLACK = enum.auto()  # elbow bounds not met this tick: moving back
-    ROM_EMPTY = enum.auto()  # ROM ∩ interval (with margin) empty: the nearest point kept
-    Q_OUT_OF_LIMITS = enum.auto()  # q outside its limits: velocity bounds push it back
-    INTERVAL_STALE = enum.auto()  # the continuity interval could not be updated
-    TOOL_LIMITED = enum.auto()  # level 1 residual not zero (bounds or singularity)
+    QP_FAILED = FLAG_QP_FAILED  # a QP level failed: safe fallback command
+    ELBOW_DROPPED = FLAG_ELBOW_DROPPED  # arm angle singular: elbow constraints dropped
+    ELBOW_SLACK = FLAG_ELBOW_SLACK  # elbow bounds not met this tick: moving back
+    ROM_EMPTY = FLAG_ROM_EMPTY  # ROM ∩ interval (with margin) empty: the nearest point kept
+    Q_OUT_OF_LIMITS = FLAG_Q_OUT_OF_LIMITS  # q outside its limits: velocity bounds push it back
+    INTERVAL_STALE = FLAG_INTERVAL_STALE  # the continuity interval could not be updated
+    TOOL_LIMITED = FLAG_TOOL_LIMITED  # level 1 residual not zero (bounds or singularity)
 
 
 @dataclass
@@ -239,9 +233,13 @@ class Controller:
         self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed,
                               compile=cfg.compile)
         self.evaluate = StateEvaluator(self.cost, compile=cfg.compile)
-        self.elbow_config = cfg.elbow()
+        self.elbow_config = ec = cfg.elbow()
+        self._elbow_params = elbow_parameters(ec.half_width_rad, ec.safety_margin_rad, ec.stiffness_min,
+                                              ec.stiffness_max, ec.alpha_per_rad, ec.d_rad, _WRIST_SIN_MIN,
+                                              ELBOW_OFFSET_MIN_M, cfg.interval_period)
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
-        self._q_low, self._q_high = robot.q_min - 1e-9, robot.q_max + 1e-9  # limits as checked (rad)
+        # rows: q as checked (rad, limits widened by 1e-9), q_min, q_max (rad), dq_max (rad/s)
+        self._limits = np.array([robot.q_min - 1e-9, robot.q_max + 1e-9, robot.q_min, robot.q_max, robot.dq_max])
         self._q_shape = (robot.nq,)
         self.strategy = make_strategy(cfg.strategy, self)
         self._can_compile = cfg.strategy == "qp" and self.qp.settings.line_fast_path
@@ -269,12 +267,17 @@ class Controller:
         self._compiled_tick = bool(value)
 
     def _warm_up(self) -> None:
-        """One dry tick at the robot's sample configuration, then forgotten: the Numba kernels of
-        :mod:`qpnso.linalg`, :mod:`qpnso.hqp` and :mod:`qpnso.tick` compile here (seconds, once per machine, then
-        cached on disk), never in the user's first control tick."""
+        """Dry ticks at the robot's sample configuration, then forgotten: the Numba kernels of
+        :mod:`qpnso.linalg`, :mod:`qpnso.hqp` and :mod:`qpnso.tick` compile (seconds, once per machine, then
+        cached on disk) or load here, for the compiled tick and the general path alike, never in a
+        control tick."""
         q = self.robot.sample_configuration()
-        self.reset(q)
-        self.step(q)
+        compiled = self.compiled_tick
+        for path in {compiled, False}:
+            self.compiled_tick = path
+            self.reset(q)
+            self.step(q)
+        self.compiled_tick = compiled
         self._reset_done = False
 
     # ---------------------------------------------------------------- reset
@@ -289,10 +292,7 @@ class Controller:
         self.ref_rotation = state.tool_rotation.copy()
         self.ref_position = state.tool_position.copy()
         self.ns0 = float(state.arm_angle if ns0 is None else ns0)
-        self._ns_prev = float(state.arm_angle)
-        self._interval: Interval | None = None
-        self._interval_pose: np.ndarray | None = None
-        self._interval_age = 0
+        self._elbow_memory = elbow_memory(state.arm_angle)
         self._dq_prev = np.zeros(self.robot.nq)
         self.strategy.reset(q, state)
         self._reset_done = True
@@ -313,33 +313,27 @@ class Controller:
         t0 = time.perf_counter()
         if not self._reset_done:
             raise QpnsoError("call Controller.reset(q0) before step()")
-        qv, status = self._check_input(q)
+        qv = q if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape \
+            and q.flags.c_contiguous and q.flags.writeable else as_vector(q, self.robot.nq, "q")
         dq_meas = self._dq_prev if dq is None else as_vector(dq, self.robot.nq, "dq")
         twist = self._no_twist if tool_twist is None else as_vector(tool_twist, 6, "tool_twist")
         if tool_pose is not None:
             self.ref_rotation, self.ref_position = tool_pose.rotation.copy(), tool_pose.translation.copy()
-        state = self.evaluate(qv)
-        elbow = self._elbow(state)
-        if elbow.status:  # (enum.Flag arithmetic costs microseconds: skipped when there is nothing to add)
-            status |= elbow.status
-        tick = self._compiled(state, elbow, twist, dq_meas) if self.compiled_tick and not elbow.dropped else None
-        if tick is None:
-            tick = self._general(state, elbow, twist, dq_meas)
-        dq_cmd, tau, tool_error, qp_status, message, solve_time = tick
+        cmd = self._compiled(qv, twist, dq_meas, t0) if self.compiled_tick else None
+        if type(cmd) is not Command:
+            cmd = self._general(qv, twist, dq_meas, t0, cmd)
         if tool_twist is not None:
             self._advance_reference(twist, tool_pose is not None)
-        self._dq_prev = dq_cmd
+        self._dq_prev = cmd.dq
         self.step_count += 1
-        return Command(
-            dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
-            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost,
-            status=status | qp_status if qp_status else status,
-            solve_time=solve_time, tick_time=time.perf_counter() - t0,
-            tool_error=tool_error, message=message,
-        )
+        return cmd
 
-    def _general(self, state: TickState, elbow: ElbowState, twist: np.ndarray, dq_meas: np.ndarray) -> tuple:
-        """The tick through :meth:`HierarchicalQP.solve` with the strategy's levels (any strategy)."""
+    def _general(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float,
+                 started: tuple | None = None) -> Command:
+        """The tick through :meth:`HierarchicalQP.solve` with the strategy's levels (any strategy);
+        ``started`` the ``(state, elbow, status)`` a compiled tick got to before the line fast path
+        proved not to apply."""
+        state, elbow, status = started or self._begin(qv)
         error = self._pose_error(state)
         lb, ub = self._velocity_bounds(state.q)
         level1 = Level(A=state.jacobian, b=twist + self.config.pose_gain * error)
@@ -348,43 +342,79 @@ class Controller:
         result = self.qp.solve(levels, lb, ub, check=False)  # arrays built here; the answer is still checked
         dq_cmd, qp_status, message = self._command_velocity(result)
         tau = self._torque(state, dq_cmd, dq_meas, elbow)
-        return dq_cmd, tau, (_norm(error[:3]), _norm(error[3:])), qp_status, message, result.solve_time
+        return Command(
+            dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
+            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost,
+            status=status | qp_status if qp_status else status,
+            solve_time=result.solve_time, tick_time=time.perf_counter() - t0,
+            tool_error=(_norm(error[:3]), _norm(error[3:])), message=message,
+        )
 
-    def _compiled(self, state: TickState, elbow: ElbowState, twist: np.ndarray, dq_meas: np.ndarray) -> tuple | None:
-        """The ``qp`` strategy's tick as :func:`qpnso.tick.qp_line_tick` (state → level-2 line QP, one
-        Numba call), the back end's level-2 solve (:meth:`HierarchicalQP.solve_line_level`) and
-        :func:`qpnso.tick.qp_torque`: the general path's answer to round-off.  None when the line
-        fast path does not apply (then the general path runs; nothing was advanced)."""
+    def _begin(self, qv: np.ndarray) -> tuple[TickState, ElbowState, Status]:
+        """The general tick's start: ``q`` checked, the state, the elbow."""
+        status = self._check_input(qv)
+        state = self.evaluate(qv)
+        elbow = self._elbow(state)
+        return state, elbow, status | elbow.status if elbow.status else status
+
+    def _compiled(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float) -> Command | tuple | None:
+        """The ``qp`` strategy's tick as :func:`qpnso.tick.qp_tick` (the CasADi state read in place →
+        level-2 line QP, one Numba call), the back end's level-2 solve (:meth:`HierarchicalQP.line_level_raw`)
+        and :func:`qpnso.tick.qp_tick_answer` (checks, command, torque): the general path's answer to
+        round-off.  Returns the Command; or, when the line fast path does not apply, ``(state, elbow,
+        status)`` for the general path to go on from; or None when nothing was done (singular arm angle)."""
+        flat = self.evaluate.raw(qv)
         t1 = time.perf_counter()
-        r, buf = self.robot, self._line
-        code, e_pos, e_rot, residual = qp_line_tick(
-            state.q, state.tool_rotation, state.tool_position, state.jacobian, state.cost_gradient,
-            state.arm_angle_gradient, self.ref_rotation, self.ref_position, twist, r.q_min, r.q_max, r.dq_max,
-            elbow.ns, elbow.rom[0], elbow.rom[1], self._gains, self._qp_tol, *buf.outputs())
-        if code != LINE_OK:
+        buf, stale = self._line, False
+        tick = self._qp_tick(qv, flat, twist, True)
+        if tick[0] == TICK_NEED_INTERVAL:
+            stale = self._update_interval(qv, flat[:12])
+            tick = self._qp_tick(qv, flat, twist, False)
+        code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits = tick
+        if code == TICK_NOT_FINITE:
+            as_vector(qv, self.robot.nq, "q")  # raises, naming the entries
+        if code == TICK_ELBOW_DROPPED:
             return None
-        second = self.qp.solve_line_level(buf.H, buf.g, buf.C, buf.l, buf.u, buf.box_l, buf.box_u, buf.x0, buf.d, 1)
-        self.qp.count_solve(second.ok)
-        if second.ok:
-            dq_cmd, status, message = second.x, _answer_status(residual, second.slack), ""
+        if stale:
+            bits |= FLAG_INTERVAL_STALE
+        if code != LINE_OK:
+            elbow = ElbowState(ns, (rom_lo, rom_hi), (iv_lo, iv_hi), k, _status(bits & _ELBOW_BITS))
+            return self.evaluate.state(qv, flat.copy()), elbow, _status(bits)
+        raw = self.qp.line_level_raw(buf.H, buf.g, buf.C, buf.l, buf.u, buf.box_l, buf.box_u, buf.x0, buf.d, 1)
+        answer = None
+        if raw.status is LevelStatus.SOLVED and raw.v is not None and raw.v.shape == buf.box_l.shape:
+            answer = qp_tick_answer(raw.v, buf.line, buf.box_l, buf.box_u, buf.C, buf.l, buf.u,
+                                    self.qp.settings.feasibility_tol, flat, self.evaluate.offsets, qv, dq_meas, k,
+                                    self.config.dt, self.config.joint_damping, residual, bits)
+        ok = answer is not None and answer[0] == LINE_ANSWER_OK
+        self.qp.count_solve(ok)
+        if ok:
+            _, dq_cmd, q_des, tau, bits = answer
+            message = ""
         else:
-            dq_cmd, status, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
-        solve_time = time.perf_counter() - t1
-        gravity = pin.computeGeneralizedGravity(r.model, r.data, state.q)
-        a = pin.crba(r.model, r.data, state.q)
-        tau = qp_torque(a, gravity, state.jacobian, dq_cmd, dq_meas, elbow.stiffness, self.config.dt,
-                        self.config.joint_damping)
-        return dq_cmd, tau, (e_pos, e_rot), status, message, solve_time
+            second = self.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
+            dq_cmd, _, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
+            bits |= FLAG_QP_FAILED
+            q_des = qv + self.config.dt * dq_cmd
+            _, _, J, _, _, _, _, _, _, A, gravity = state_views(flat, self.evaluate.offsets)
+            tau = qp_torque(A, gravity, J, dq_cmd, dq_meas, k, self.config.dt, self.config.joint_damping)
+        t2 = time.perf_counter()
+        return Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, _status(bits), t2 - t1,
+                       t2 - t0, (e_pos, e_rot), message)
+
+    def _qp_tick(self, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool) -> tuple:
+        """:func:`qpnso.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""
+        return qp_tick(qv, flat, self.evaluate.offsets, self._limits, self.ref_rotation, self.ref_position, twist,
+                       self._elbow_memory, self.ns0, self._elbow_params, advance, self._gains, self._qp_tol,
+                       *self._line.outputs())
 
     # ------------------------------------------------------------- helpers
-    def _check_input(self, q: object) -> tuple[np.ndarray, Status]:
-        """Shape/NaN → InputError; outside the limits is recovered (flagged), not refused."""
-        qv = q if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape \
-            and q.flags.c_contiguous and q.flags.writeable else as_vector(q, self.robot.nq, "q")
-        code = limits_status(qv, self._q_low, self._q_high)
+    def _check_input(self, qv: np.ndarray) -> Status:
+        """NaN → InputError; outside the limits is recovered (flagged), not refused."""
+        code = limits_status(qv, self._limits[0], self._limits[1])
         if code == 2:
             as_vector(qv, self.robot.nq, "q")  # raises, naming the entries
-        return qv, Status.Q_OUT_OF_LIMITS if code else Status.OK
+        return Status.Q_OUT_OF_LIMITS if code else Status.OK
 
     def _pose_error(self, state: TickState) -> np.ndarray:
         """(position error m, rotation error rad) of the reference w.r.t. the tool, world frame
@@ -408,63 +438,33 @@ class Controller:
         return velocity_bounds(q, r.q_min, r.q_max, r.dq_max, self.config.joint_limit_gain)
 
     def _elbow(self, state: TickState) -> ElbowState:
-        """Arm angle (unwrapped), continuity interval, ROM_t [E 10], [E 11] and K(ns) [E 6].
+        """Arm angle (unwrapped), continuity interval, ROM_t [E 10], [E 11] and K(ns) [E 6]
+        (:func:`qpnso.tick.elbow_advance`, :func:`qpnso.tick.elbow_bounds`).
 
         A singular arm angle (wrist near the vertical through the shoulder, or a
         straight elbow) drops the elbow constraints for the tick.
         """
-        cfg = self.elbow_config
+        memory = self._elbow_memory
         if state.wrist_sin < _WRIST_SIN_MIN or state.elbow_offset < ELBOW_OFFSET_MIN_M:
-            ns = self._ns_prev
-            k = float(stiffness(ns, self.ns0, cfg))
+            ns = float(memory[NS])
+            k = float(stiffness(ns, self.ns0, self.elbow_config))
             return ElbowState(ns, (ns, ns), (ns - np.pi, ns + np.pi), k, Status.ELBOW_DROPPED, dropped=True)
-        ns = self._unwrap(state.arm_angle)
-        interval, stale = self._continuity(state, ns)
-        status = Status.INTERVAL_STALE if stale else Status.OK
-        lo, hi, empty = clipped_bounds(self.ns0, cfg.half_width_rad, interval.lo, interval.hi, interval.full_circle,
-                                       cfg.safety_margin_rad)
-        if empty:
-            status |= Status.ROM_EMPTY
-        return ElbowState(ns, (lo, hi), (interval.lo, interval.hi), stiffness(ns, self.ns0, cfg), status)
+        params = self._elbow_params
+        ns, recompute = elbow_advance(state.arm_angle, state.pose, memory, params[8], params[9])
+        stale = self._update_interval(state.q, state.pose) if recompute else False
+        lo, hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, self.ns0, params)
+        bits = (FLAG_INTERVAL_STALE if stale else 0) | (FLAG_ROM_EMPTY if empty else 0)
+        return ElbowState(ns, (lo, hi), (iv_lo, iv_hi), k, _status(bits))
 
-    def _unwrap(self, ns_wrapped: float) -> float:
-        d = (ns_wrapped - self._ns_prev + np.pi) % (2 * np.pi) - np.pi
-        ns = self._ns_prev + d
-        self._ns_prev = ns
-        return ns
-
-    def _continuity(self, state: TickState, ns: float) -> tuple[Interval, bool]:
-        """The continuity interval around ``ns`` (unwrapped); recomputed when the
-        tool has moved, at most every ``interval_period`` ticks."""
-        self._interval_age += 1
-        fresh = self._interval is not None and (
-            self._interval_age < self.config.interval_period or not self._tool_moved(state))
-        stale = False
-        if not fresh:
-            try:
-                self._interval = continuity_interval(self.robot, state.q)
-                self._interval_pose = state.pose
-                self._interval_age = 0
-            except QpnsoError:
-                stale = True
-        if self._interval is None:
-            return Interval(ns - np.pi, ns + np.pi, True), True
-        return self._shift(self._interval, ns), stale
-
-    def _tool_moved(self, state: TickState) -> bool:
-        """Whether the tool pose differs, by more than ``TOOL_MOVED_TOL`` (m, and rad-sized rotation
-        entries), from the one the cached interval was computed at."""
-        return max_abs_difference(state.pose, self._interval_pose) > TOOL_MOVED_TOL
-
-    @staticmethod
-    def _shift(interval: Interval, ns: float) -> Interval:
-        """The arc moved by whole turns to be expressed around ``ns`` (a full circle is centred on it)."""
-        if interval.full_circle:
-            return Interval(ns - math.pi, ns + math.pi, True)
-        k = round((ns - 0.5 * (interval.lo + interval.hi)) / TWO_PI)
-        if k == 0:
-            return interval
-        return Interval(interval.lo + TWO_PI * k, interval.hi + TWO_PI * k, False)
+    def _update_interval(self, q: np.ndarray, pose: np.ndarray) -> bool:
+        """Recompute the continuity interval [E 9] at ``q`` into the elbow memory; True (stale) when it
+        cannot be: the previous one (or, before any, the full circle) stands."""
+        try:
+            interval = continuity_interval(self.robot, q)
+        except QpnsoError:
+            return True
+        store_interval(self._elbow_memory, interval.lo, interval.hi, interval.full_circle, pose)
+        return False
 
     def _command_velocity(self, result) -> tuple[np.ndarray, Status, str]:
         """The QP's answer, or the safe fallback: level-1 solution, else zero."""
@@ -482,11 +482,8 @@ class Controller:
     def _torque(self, state: TickState, dq_cmd: np.ndarray, dq_meas: np.ndarray, elbow: ElbowState) -> np.ndarray:
         """τ = g(q) + Nᵀ τ_null with N = I − J̄J, J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ (METHOD §2, §7;
         :func:`qpnso.linalg.dynamically_consistent_projection`; a singular A gives no projection, never NaN)."""
-        r = self.robot
         tau_null = self.strategy.nullspace_torque(state, elbow, dq_cmd, dq_meas)
-        g = pin.computeGeneralizedGravity(r.model, r.data, state.q)
-        a = pin.crba(r.model, r.data, state.q)  # upper triangle filled: all the projection reads
-        return g + dynamically_consistent_projection(a, state.jacobian, tau_null)[0]
+        return state.gravity + dynamically_consistent_projection(state.mass_matrix, state.jacobian, tau_null)[0]
 
     def __repr__(self) -> str:
         return f"Controller({self.robot.name!r}, strategy={self.config.strategy!r}, dt={self.config.dt})"

@@ -747,6 +747,20 @@ def line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack):  # type: ignore[no-un
     return x0 + t * d, worst, slack
 
 
+LINE_ANSWER_OK, LINE_ANSWER_NOT_FINITE, LINE_ANSWER_VIOLATED = 0, 1, 2
+
+
+@njit(cache=True)
+def checked_line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack, tol):  # type: ignore[no-untyped-def]
+    """``(code, x, worst, slack)`` of :func:`line_answer`, judged: :data:`LINE_ANSWER_NOT_FINITE` when ``t``
+    (all that ``x`` depends on) is not finite, :data:`LINE_ANSWER_VIOLATED` when the box or a hard row is
+    violated by more than ``tol``, else :data:`LINE_ANSWER_OK`."""
+    if not math.isfinite(v[0]):
+        return LINE_ANSWER_NOT_FINITE, x0.copy(), math.inf, np.zeros(n_slack)
+    x, worst, slack = line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack)
+    return (LINE_ANSWER_OK if worst <= tol else LINE_ANSWER_VIOLATED), x, worst, slack
+
+
 # ------------------------------------------------------------------- results
 class LevelStatus(str, enum.Enum):
     """Outcome of one level."""
@@ -844,6 +858,7 @@ class _ProxSuiteBackend:
             else guess.EQUALITY_CONSTRAINED_INITIAL_GUESS
         self._cold = guess.EQUALITY_CONSTRAINED_INITIAL_GUESS
         self._messages: dict = {}  # status -> "proxsuite <name>" (formatted once)
+        self._solved = out.PROXQP_SOLVED  # (an enum singleton: compared by identity, the cheapest test)
 
     def _create(self, nv: int, n_in: int, box: bool):
         s = self._settings
@@ -868,11 +883,10 @@ class _ProxSuiteBackend:
         """``min ½vᵀHv + gᵀv`` s.t. ``lo ≤ C v ≤ hi`` (and ``box_l ≤ v ≤ box_u`` if given) on the
         persistent object of level ``k`` and this shape, warm-started; a failed warm solve is retried cold."""
         box = box_l is not None
-        data = dict(H=H, g=g)
         if C.shape[0]:
-            data.update(C=C, l=lo, u=hi)
-        if box:
-            data.update(l_box=box_l, u_box=box_u)
+            data = dict(H=H, g=g, C=C, l=lo, u=hi, l_box=box_l, u_box=box_u) if box else dict(H=H, g=g, C=C, l=lo, u=hi)
+        else:
+            data = dict(H=H, g=g, l_box=box_l, u_box=box_u) if box else dict(H=H, g=g)
         key = (k, H.shape[0], C.shape[0], box)
         entry = self._qps.get(key)
         if entry is None:
@@ -886,18 +900,20 @@ class _ProxSuiteBackend:
             obj.update(**data)
         obj.solve()
         settings, results, info = entry[2], entry[3], entry[4]
-        status = self._status.get(info.status, LevelStatus.SOLVER_ERROR)
-        if status is not LevelStatus.SOLVED and settings.initial_guess == self._warm:
-            self._stats.cold_retries += 1  # a warm start can fail where a cold one does not (measured)
-            settings.initial_guess = self._cold
-            obj.init(**data)  # same object; resets its adapted penalties too
-            obj.solve()
-            status = self._status.get(info.status, LevelStatus.SOLVER_ERROR)
+        out = info.status
+        if out is not self._solved:
+            if settings.initial_guess == self._warm:
+                self._stats.cold_retries += 1  # a warm start can fail where a cold one does not (measured)
+                settings.initial_guess = self._cold
+                obj.init(**data)  # same object; resets its adapted penalties too
+                obj.solve()
+                out = info.status
+        status = LevelStatus.SOLVED if out is self._solved else self._status.get(out, LevelStatus.SOLVER_ERROR)
         entry[1] = status is not LevelStatus.SOLVED  # a failed result is a bad warm start
-        message = self._messages.get(info.status)
+        message = self._messages.get(out)
         if message is None:
-            message = self._messages[info.status] = f"proxsuite {info.status.name}"
-        return _Raw(np.array(results.x), status, info.iter, message)  # results.x is a view: copied
+            message = self._messages[out] = f"proxsuite {out.name}"
+        return _Raw(results.x.copy(), status, info.iter, message)  # results.x is a view: copied
 
     @property
     def qp_objects(self) -> int:
@@ -1031,23 +1047,36 @@ class HierarchicalQP:
                          box_l: np.ndarray, box_u: np.ndarray, x0: np.ndarray, direction: np.ndarray,
                          n_slack: int, qp: LevelQP | None = None) -> LevelResult:
         """Level 2 of the line fast path from the arrays of :func:`line_qp_arrays` (``v = [t; σ]``,
-        ``x = x0 + t·direction``, rad/s): solved on the back end's persistent level-2 object, the
-        answer checked (box on ``t`` and hard rows within ``feasibility_tol``) and the soft rows'
-        slack reported; ``residual`` is left to the caller.  :meth:`solve` uses it, and so does the
-        controller's compiled tick (:mod:`qpnso.tick`), which counts its ticks with :meth:`count_solve`."""
+        ``x = x0 + t·direction``, rad/s): :meth:`line_level_raw`, then :meth:`line_level_result`
+        (``residual`` is left to the caller).  The controller's compiled tick (:mod:`qpnso.tick`)
+        calls the two parts itself and counts its ticks with :meth:`count_solve`."""
+        raw = self.line_level_raw(H, g, C, l, u, box_l, box_u, x0, direction, n_slack, qp)
+        return self.line_level_result(raw, direction, x0, box_l, box_u, C, l, u, n_slack)
+
+    def line_level_raw(self, H: np.ndarray, g: np.ndarray, C: np.ndarray, l: np.ndarray, u: np.ndarray,
+                       box_l: np.ndarray, box_u: np.ndarray, x0: np.ndarray, direction: np.ndarray,
+                       n_slack: int, qp: LevelQP | None = None) -> _Raw:
+        """The back end's answer to the line's level 2, on its persistent level-2 object, unchecked."""
         if isinstance(self._backend, _ProxSuiteBackend) and self.settings.box_constraints:
-            raw = self._backend.solve_arrays(1, H, g, C, l, u, box_l, box_u)
-        else:
-            if qp is None:
-                qp = LevelQP(H, g, C, l, u, box_l, box_u, x0, direction[:, None], _OWNED_0, None, n_slack, 0, 0)
-            raw = self._backend.solve(1, qp)
+            return self._backend.solve_arrays(1, H, g, C, l, u, box_l, box_u)
+        if qp is None:
+            qp = LevelQP(H, g, C, l, u, box_l, box_u, x0, direction[:, None], _OWNED_0, None, n_slack, 0, 0)
+        return self._backend.solve(1, qp)
+
+    def line_level_result(self, raw: _Raw, direction: np.ndarray, x0: np.ndarray, box_l: np.ndarray,
+                          box_u: np.ndarray, C: np.ndarray, l: np.ndarray, u: np.ndarray, n_slack: int) -> LevelResult:
+        """A raw line answer judged (:func:`checked_line_answer`: box on ``t`` and hard rows within
+        ``feasibility_tol``) with the soft rows' slack."""
         if raw.status is not LevelStatus.SOLVED:
             return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
-        if raw.v is None or raw.v.shape != g.shape or not math.isfinite(raw.v[0]):  # x depends on t = v[0] only
+        code = LINE_ANSWER_NOT_FINITE
+        if raw.v is not None and raw.v.shape == box_l.shape:
+            code, x, worst, slack = checked_line_answer(raw.v, direction, x0, box_l, box_u, C, l, u, n_slack,
+                                                        self.settings.feasibility_tol)
+        if code == LINE_ANSWER_NOT_FINITE:
             return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
                                message=f"{raw.message}: non-finite or mis-shaped solution")
-        x, worst, slack = line_answer(raw.v, direction, x0, box_l, box_u, C, l, u, n_slack)
-        if not worst <= self.settings.feasibility_tol:
+        if code == LINE_ANSWER_VIOLATED:
             return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
                                message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
         return LevelResult(LevelStatus.SOLVED, x=x, slack=slack if n_slack else None, iterations=raw.iterations,

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numba import njit
 
 from qpnso.errors import ConfigError, InputError
 from qpnso.intervals import Interval
@@ -118,10 +119,11 @@ def clip_rom(ns0: float, half_width: float, interval: Interval, margin: float) -
     return ClippedRom(*clipped_bounds(ns0, half_width, interval.lo, interval.hi, interval.full_circle, margin))
 
 
+@njit(cache=True)
 def clipped_bounds(ns0: float, half_width: float, lo: float, hi: float, full_circle: bool,
                    margin: float) -> tuple[float, float, bool]:
     """The arithmetic of :func:`clip_rom` on plain floats (rad), inputs taken as valid:
-    ``(lo, hi, empty)`` of ROM_t for the interval ``[lo, hi]`` (the controller's per-tick call)."""
+    ``(lo, hi, empty)`` of ROM_t for the interval ``[lo, hi]`` (the controller's per-tick kernel)."""
     centre = 0.5 * (lo + hi)
     ns0 = ns0 + 2 * math.pi * round((centre - ns0) / (2 * math.pi))
     rom_lo, rom_hi = ns0 - half_width, ns0 + half_width
@@ -140,13 +142,20 @@ def clipped_bounds(ns0: float, half_width: float, lo: float, hi: float, full_cir
 def stiffness(ns: float | np.ndarray, ns0: float, cfg: ElbowConfig) -> float | np.ndarray:
     """Elbow stiffness (N·m/rad), double symmetric sigmoid [E 6]:
     ``K = (Kmax − Kmin)/(1 + exp(α (d − |ns − ns0|))) + Kmin``."""
-    span = cfg.stiffness_max - cfg.stiffness_min
     if isinstance(ns, float):  # the per-tick path: plain floats
-        x = cfg.alpha_per_rad * (cfg.d_rad - abs(ns - ns0))
-        return span * 0.5 * (1.0 - math.tanh(0.5 * x)) + cfg.stiffness_min
+        return sigmoid_stiffness(ns, ns0, cfg.stiffness_min, cfg.stiffness_max, cfg.alpha_per_rad, cfg.d_rad)
+    span = cfg.stiffness_max - cfg.stiffness_min
     x = cfg.alpha_per_rad * (cfg.d_rad - np.abs(np.asarray(ns, dtype=float) - ns0))
     k = span * 0.5 * (1.0 - np.tanh(0.5 * x)) + cfg.stiffness_min
     return float(k) if np.ndim(k) == 0 else k
+
+
+@njit(cache=True)
+def sigmoid_stiffness(ns: float, ns0: float, k_min: float, k_max: float, alpha: float, d: float) -> float:
+    """:func:`stiffness` of one arm angle (rad) from plain parameters (N·m/rad, 1/rad, rad): the
+    per-tick kernel.  ``1/(1 + eˣ) = ½(1 − tanh(x/2))``, which cannot overflow."""
+    x = alpha * (d - abs(ns - ns0))
+    return (k_max - k_min) * 0.5 * (1.0 - math.tanh(0.5 * x)) + k_min
 
 
 def setpoint(ns: float, rom_t: ClippedRom | tuple[float, float]) -> float:

@@ -2,9 +2,8 @@
 
 One compiled CasADi function evaluates, from ``q`` alone, the tool pose, the
 tool Jacobian, the weighted cost and its exact gradient, and the arm angle with
-its exact gradient and singularity measures — one call per tick instead of five
-(:class:`StateEvaluator`).  Pinocchio adds the numeric dynamics a torque
-command needs (``A(q)``, ``g(q)``) only when asked.
+its exact gradient and singularity measures, and the dynamics a torque command needs (``A(q)``, ``g(q)``) — one call per
+tick instead of seven (:class:`StateEvaluator`).
 """
 
 from __future__ import annotations
@@ -13,6 +12,7 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
+from numba import njit
 
 from qpnso.codegen import FastFunction
 from qpnso.costs import CostModel
@@ -34,13 +34,16 @@ class TickState:
     wrist_sin: float  # |p_sw × z0| / |p_sw|: sine of the wrist's angle to the vertical
     elbow_offset: float  # distance (m) of the elbow centre from the shoulder–wrist line
     pose: np.ndarray  # (12,) rotation entries (column-major) then position (m): for cheap comparisons
+    mass_matrix: np.ndarray  # (nq, nq) A(q), kg·m² (Pinocchio's crba)
+    gravity: np.ndarray  # (nq,) g(q), N·m (Pinocchio's computeGeneralizedGravity)
 
 
 class StateEvaluator:
     """Evaluates :class:`TickState` from ``q`` with one CasADi call.
 
-    The function has a single output, every quantity stacked in one vector (``R`` and ``J``
-    column-major), so a tick copies one array and the state's fields are views of it.
+    The function has a single output, every quantity stacked in one vector (``R``, ``J`` and ``A``
+    column-major) at the offsets :attr:`offsets`; :func:`state_views` cuts it into the state's
+    fields, views of the one array a tick copies (or, for the compiled tick, reads in place).
     """
 
     def __init__(self, cost: CostModel, compile: str | None = None) -> None:
@@ -50,13 +53,13 @@ class StateEvaluator:
         ns, measures = arm_angle_expression(sym, elbow_points(robot))
         total = cost.expression
         parts = [tool.R, tool.p, sym.frame_jacobian(robot.tool_frame_id), total, ca.gradient(total, sym.q), ns,
-                 ca.gradient(ns, sym.q), measures]
+                 ca.gradient(ns, sym.q), measures, sym.mass_matrix(), sym.gravity_torque()]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
         self._fn = FastFunction(sym.function(f"tick_{robot.name}", {"state": stacked}), compile)
-        n = robot.nq
-        ends = np.cumsum([9, 3, 6 * n, 1, n, 1, n, 2])
-        self._slices = [slice(a, b) for a, b in zip(np.r_[0, ends[:-1]], ends)]
+        self.offsets = np.cumsum([0] + [part.numel() for part in parts])
+        """Start of each part in the stacked vector, and its length at the end (in the order of
+        :func:`state_views`)."""
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until compiled code is used (benchmarks call this)."""
@@ -64,8 +67,27 @@ class StateEvaluator:
 
     def __call__(self, q: np.ndarray) -> TickState:
         """State at ``q`` (rad; assumed validated by the caller)."""
-        flat = self._fn.flat(q)
-        rot, pos, jac, c, dc, ns, dns, measures = (flat[k] for k in self._slices)
-        n = q.shape[0]
-        return TickState(q, rot.reshape(3, 3, order="F"), pos, jac.reshape(6, n, order="F"), float(c[0]), dc,
-                         float(ns[0]), dns, float(measures[0]), float(measures[1]), flat[:12])
+        return self.state(q, self._fn.flat(q))
+
+    def raw(self, q: np.ndarray) -> np.ndarray:
+        """The stacked state at ``q`` (rad, validated by the caller) in the evaluator's own buffer:
+        read it before the next call, which overwrites it (the compiled tick's in-place read)."""
+        return self._fn.evaluate_in_place(q)
+
+    def state(self, q: np.ndarray, flat: np.ndarray) -> TickState:
+        """The :class:`TickState` of a stacked state ``flat`` (views of it) at ``q``."""
+        R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, A, g = state_views(flat, self.offsets)
+        return TickState(q, R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, flat[:12], A, g)
+
+
+@njit(cache=True)
+def state_views(flat, offsets):  # type: ignore[no-untyped-def]
+    """The stacked state cut at ``offsets`` (:attr:`StateEvaluator.offsets`): ``(R, p, J, c, ∇c, ns, ∇ns,
+    wrist_sin, elbow_offset, A, g)``, arrays as views (column-major parts: F-ordered), scalars as floats."""
+    o = offsets
+    n = o[5] - o[4]
+    R = flat[o[0]:o[1]].reshape((3, 3)).T
+    J = flat[o[2]:o[3]].reshape((n, 6)).T
+    A = flat[o[8]:o[9]].reshape((n, n)).T
+    return (R, flat[o[1]:o[2]], J, flat[o[3]], flat[o[4]:o[5]], flat[o[5]], flat[o[6]:o[7]], flat[o[7]],
+            flat[o[7] + 1], A, flat[o[9]:o[10]])

@@ -9,7 +9,8 @@ round-off (``tests/test_symbolic.py``):
 * the frame Jacobian, ``LOCAL_WORLD_ALIGNED`` (linear rows first, world axes,
   at the frame origin), as in METHOD §2;
 * the joint-space inertia matrix ``A(q) = Σ_b m_b Jc_bᵀ Jc_b + Jw_bᵀ R_b I_b R_bᵀ Jw_b
-  + diag(armature)``.
+  + diag(armature)``;
+* the generalised gravity ``g(q) = ∂V/∂q``, ``V = −Σ_b m_b g₀ᵀ c_b``.
 
 Supported joints: revolute (aligned or unaligned axis) and prismatic.
 """
@@ -75,6 +76,7 @@ class SymbolicModel:
         self.model = model
         self.nq = model.nq
         self.q = ca.SX.sym("q", model.nq)
+        self._mass_matrix: ca.SX | None = None
         self._kinds: list[tuple[str, np.ndarray]] = [("fixed", np.zeros(3))]
         self.oMi: list[SymPlacement] = [_constant(pin.SE3.Identity())]
         for j in range(1, model.njoints):
@@ -123,7 +125,13 @@ class SymbolicModel:
 
     # -------------------------------------------------------------- dynamics
     def mass_matrix(self) -> ca.SX:
-        """Joint-space inertia matrix A(q) (nq×nq), symmetric by construction."""
+        """Joint-space inertia matrix A(q) (nq×nq, kg·m²), symmetric by construction (Pinocchio's
+        ``crba``).  Built once: every expression that uses it shares its nodes."""
+        if self._mass_matrix is None:
+            self._mass_matrix = self._build_mass_matrix()
+        return self._mass_matrix
+
+    def _build_mass_matrix(self) -> ca.SX:
         a = ca.SX(ca.DM(np.diag(np.asarray(self.model.armature, dtype=float))))
         for j in range(1, self.model.njoints):
             inertia = self.model.inertias[j]
@@ -136,6 +144,17 @@ class SymbolicModel:
             i_world = ca.mtimes([rot, ca.DM(np.asarray(inertia.inertia)), rot.T])
             a += inertia.mass * ca.mtimes(jv.T, jv) + ca.mtimes([jw.T, i_world, jw])
         return a
+
+    def gravity_torque(self) -> ca.SX:
+        """Generalised gravity ``g(q) = ∂V/∂q`` (nq, N·m) with ``V = −Σ_b m_b g₀ᵀ c_b`` (J), ``g₀`` the
+        model's gravity (m/s², world): Pinocchio's ``computeGeneralizedGravity``."""
+        g0 = ca.DM(np.asarray(self.model.gravity.linear, dtype=float))
+        potential = ca.SX(0)
+        for j in range(1, self.model.njoints):
+            inertia = self.model.inertias[j]
+            if inertia.mass > 0.0:
+                potential -= inertia.mass * ca.dot(g0, self.oMi[j].point(np.asarray(inertia.lever)))
+        return ca.gradient(potential, self.q)
 
     def function(self, name: str, outputs: dict[str, ca.SX]) -> ca.Function:
         """A CasADi function of ``q`` with named outputs."""

@@ -7,14 +7,18 @@ kernel here, and the general Python path calls these same kernels one by one:
 * :func:`pose_error` — level 1's error ``(p_ref − p, log₃(R_ref Rᵀ))`` (m, rad; world frame);
 * :func:`velocity_bounds` — joint velocity limits with the position damper;
 * :func:`cost_step` / :func:`low_pass` — the ``qp`` strategy's saturated, filtered cost step;
-* :func:`qp_nullspace_torque` — its null-space impedance torque.
+* :func:`qp_nullspace_torque` — its null-space impedance torque;
+* :func:`elbow_advance` / :func:`elbow_bounds` — the arm angle unwrapped along the run, the cached
+  continuity interval's age, ROM_t and the stiffness K(ns), on the elbow memory (:func:`elbow_memory`).
 
 For the ``qp`` strategy with the hierarchical QP's line fast path
-(:mod:`qpnso.hqp`, module doc), :func:`qp_line_tick` composes them with the
-line kernels into one call (state → level-2 line QP), and :func:`qp_torque`
-forms the torque command.  Python then only calls CasADi, ProxSuite and Pinocchio: the
-controller's *compiled tick* (``ControllerConfig.compiled_tick``).  Its answers
-equal the general path's to round-off (tests/test_tick.py).
+(:mod:`qpnso.hqp`, module doc), :func:`qp_tick` composes them with the line
+kernels into one call, from the stacked CasADi state (read in place) to the
+level-2 line QP, and :func:`qp_tick_answer` judges the QP's answer and forms
+the command and torque.  Python then only calls CasADi and ProxSuite (and the
+continuity interval when it is due): the controller's *compiled tick*
+(``ControllerConfig.compiled_tick``).  Its answers equal the general path's to
+round-off (tests/test_tick.py).
 """
 
 from __future__ import annotations
@@ -24,8 +28,10 @@ import math
 import numpy as np
 from numba import njit
 
-from qpnso.hqp import LINE_OK, least_norm_point, line_qp_arrays, task_line
+from qpnso.hqp import LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, task_line
 from qpnso.linalg import dynamically_consistent_projection, nullspace_part
+from qpnso.rom import clipped_bounds, sigmoid_stiffness
+from qpnso.state import state_views
 
 LOG3_MAX_ANGLE = math.pi - 1e-3
 """rad: :func:`pose_error` reports (``ok`` False) a rotation error closer to π than this, where
@@ -34,6 +40,28 @@ its axis is ill-conditioned; the caller then uses ``pinocchio.log3``."""
 LINE_NO_POSE = 3
 """A code of :func:`qp_line_tick` besides those of :func:`qpnso.hqp.task_line`: the rotation error is
 too close to π for the kernel's log₃."""
+TICK_NOT_FINITE = 4
+"""A code of :func:`qp_tick`: ``q`` has a NaN or an infinite entry; nothing was done (the caller raises)."""
+TICK_ELBOW_DROPPED = 5
+"""A code of :func:`qp_tick`: the arm angle is singular; nothing was done (the general path drops the elbow)."""
+TICK_NEED_INTERVAL = 6
+"""A code of :func:`qp_tick`: the elbow memory advanced and the continuity interval must be recomputed
+(:func:`store_interval`), then :func:`qp_tick` called again with ``advance`` False."""
+
+# Status bits (qpnso.controller.Status has the same values)
+FLAG_QP_FAILED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_ROM_EMPTY = 1, 2, 4, 8
+FLAG_Q_OUT_OF_LIMITS, FLAG_INTERVAL_STALE, FLAG_TOOL_LIMITED = 16, 32, 64
+
+TOOL_RESIDUAL_REPORTED = 1e-6
+"""m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
+the tool's motion) is flagged ``TOOL_LIMITED``."""
+ELBOW_SLACK_REPORTED = 1e-3
+"""rad/s: an elbow row violated by more than this is flagged ``ELBOW_SLACK``.  A soft
+row held by the cost is always violated by about (cost force)/(2·slack_weight) ≈ 1e-5."""
+TOOL_MOVED_TOL = 1e-6
+"""m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
+cached continuity interval (its ends move by ~1e-6 rad at most, against a safety margin of degrees)."""
+TWO_PI = 2.0 * math.pi
 
 
 @njit(cache=True)
@@ -119,9 +147,82 @@ def elbow_row_bounds(ns, rom_lo, rom_hi, gain):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def answer_bits(tool_residual, slack_max):  # type: ignore[no-untyped-def]
+    """Status bits of a solved tick: ``TOOL_LIMITED`` for level 1's residual (m/s, rad/s) above
+    :data:`TOOL_RESIDUAL_REPORTED`, ``ELBOW_SLACK`` for an elbow row's slack (rad/s) above
+    :data:`ELBOW_SLACK_REPORTED` (a negative value: nothing to report)."""
+    bits = 0
+    if tool_residual > TOOL_RESIDUAL_REPORTED:
+        bits |= FLAG_TOOL_LIMITED
+    if slack_max > ELBOW_SLACK_REPORTED:
+        bits |= FLAG_ELBOW_SLACK
+    return bits
+
+
+@njit(cache=True)
 def qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
     """The ``qp`` strategy's null-space impedance ``K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)`` (N·m)."""
     return stiffness * dt * dq_cmd + damping * (dq_cmd - dq_meas)
+
+
+# ------------------------------------------------------------------ elbow
+# The elbow's state across ticks, one array (elbow_memory) that the kernels read and advance:
+NS, IV_LO, IV_HI, IV_FULL, IV_KNOWN, IV_AGE, IV_POSE = 0, 1, 2, 3, 4, 5, 6
+"""Indices: the last arm angle (rad, unwrapped along the run); the cached continuity interval (rad,
+around that angle), full circle (1/0), known (1/0), its age (ticks), and from IV_POSE the 12 entries
+of the tool pose (:attr:`qpnso.state.TickState.pose`) it was computed at."""
+
+
+def elbow_memory(ns: float) -> np.ndarray:
+    """A fresh elbow memory at arm angle ``ns`` (rad): no interval known."""
+    memory = np.zeros(IV_POSE + 12)
+    memory[NS] = ns
+    return memory
+
+
+def store_interval(memory: np.ndarray, lo: float, hi: float, full_circle: bool, pose: np.ndarray) -> None:
+    """Cache a continuity interval (rad) computed at the tool pose ``pose`` (12,); its age restarts."""
+    memory[IV_LO], memory[IV_HI], memory[IV_FULL], memory[IV_KNOWN], memory[IV_AGE] = lo, hi, full_circle, 1.0, 0.0
+    memory[IV_POSE:] = pose
+
+
+def elbow_parameters(half_width: float, margin: float, k_min: float, k_max: float, alpha: float, d: float,
+                     wrist_sin_min: float, elbow_offset_min: float, period: int) -> np.ndarray:
+    """The elbow kernels' constants in one array: ROM half width Δns and safety margin d_sg (rad),
+    stiffness K_min, K_max (N·m/rad), α (1/rad), d (rad) [E 6], the singularity thresholds (sine, m),
+    the interval's update period (ticks) and :data:`TOOL_MOVED_TOL`."""
+    return np.array([half_width, margin, k_min, k_max, alpha, d, wrist_sin_min, elbow_offset_min, period,
+                     TOOL_MOVED_TOL])
+
+
+@njit(cache=True)
+def elbow_advance(ns_wrapped, pose, memory, period, moved_tol):  # type: ignore[no-untyped-def]
+    """One tick of the elbow memory: the arm angle unwrapped along the run (rad), the interval aged.
+    Returns ``(ns, recompute)``: whether the continuity interval must be recomputed (none known, or
+    the tool moved by more than ``moved_tol`` and the interval is ``period`` ticks old)."""
+    ns = memory[NS] + (ns_wrapped - memory[NS] + math.pi) % TWO_PI - math.pi
+    memory[NS] = ns
+    memory[IV_AGE] += 1.0
+    if memory[IV_KNOWN] == 0.0:
+        return ns, True
+    fresh = memory[IV_AGE] < period or max_abs_difference(pose, memory[IV_POSE:]) <= moved_tol
+    return ns, not fresh
+
+
+@njit(cache=True)
+def elbow_bounds(ns, memory, ns0, params):  # type: ignore[no-untyped-def]
+    """``(rom_lo, rom_hi, empty, iv_lo, iv_hi, K)`` at arm angle ``ns`` (rad): the cached continuity
+    interval moved by whole turns to be expressed around ``ns`` (none known, or a full circle: the
+    circle centred on ``ns``) [E 9], ROM_t clipped to it [E 10], [E 11] (:func:`qpnso.rom.clipped_bounds`)
+    and the stiffness K(ns) [E 6] (N·m/rad)."""
+    full = memory[IV_KNOWN] == 0.0 or memory[IV_FULL] != 0.0
+    if full:
+        lo, hi = ns - math.pi, ns + math.pi
+    else:
+        k = round((ns - 0.5 * (memory[IV_LO] + memory[IV_HI])) / TWO_PI)
+        lo, hi = memory[IV_LO] + TWO_PI * k, memory[IV_HI] + TWO_PI * k
+    rom_lo, rom_hi, empty = clipped_bounds(ns0, params[0], lo, hi, full, params[1])
+    return rom_lo, rom_hi, empty, lo, hi, sigmoid_stiffness(ns, ns0, params[2], params[3], params[4], params[5])
 
 
 class LineTickBuffers:
@@ -182,6 +283,55 @@ def qp_line_tick(q, R, p, J, cost_gradient, arm_angle_gradient, R_ref, p_ref, tw
 @njit(cache=True)
 def qp_torque(A, gravity, J, dq_cmd, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
     """``τ = g(q) + Nᵀ τ_null`` (N·m, METHOD §2, §7) with the ``qp`` strategy's impedance
-    :func:`qp_nullspace_torque`; ``A`` by its upper triangle (Pinocchio's ``crba``)."""
+    :func:`qp_nullspace_torque`; ``A`` read by its upper triangle."""
     tau_null = qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping)
     return gravity + dynamically_consistent_projection(A, J, tau_null)[0]
+
+
+@njit(cache=True)
+def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, advance, gains, qp_tol,
+            step, line, H, g, C, l, u, box_l, box_u):  # type: ignore[no-untyped-def]
+    """The ``qp`` strategy's tick up to its level-2 QP, in one call: the compiled tick (module doc).
+
+    ``flat`` the stacked CasADi state at ``q`` (:class:`qpnso.state.StateEvaluator`, cut at
+    ``offsets``); ``limits`` (5, n) the rows q_low, q_high (``q`` as checked), q_min, q_max (rad),
+    dq_max (rad/s); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
+    ROM centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
+    In order: ``q`` checked (:data:`TICK_NOT_FINITE`), the arm angle's singularity
+    (:data:`TICK_ELBOW_DROPPED`), the elbow (:func:`elbow_advance`, :func:`elbow_bounds`), then
+    :func:`qp_line_tick` into the buffers.  Returns ``(code, ns, rom_lo, rom_hi, iv_lo, iv_hi, K,
+    ‖e_p‖, ‖e_R‖, level-1 residual, cost, status bits)``; ``code`` is :data:`qpnso.hqp.LINE_OK` when
+    the line QP is ready, one of :func:`qp_line_tick`'s others when the general path must solve it."""
+    nothing = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+    limit = limits_status(q, limits[0], limits[1])
+    if limit == 2:
+        return (TICK_NOT_FINITE,) + nothing[1:]
+    R, p, J, cost, cost_gradient, ns_wrapped, ns_gradient, wrist_sin, elbow_offset, _, _ = state_views(flat, offsets)
+    if wrist_sin < elbow[6] or elbow_offset < elbow[7]:
+        return (TICK_ELBOW_DROPPED,) + nothing[1:]
+    if advance:
+        _, recompute = elbow_advance(ns_wrapped, flat[:12], memory, elbow[8], elbow[9])
+        if recompute:
+            return (TICK_NEED_INTERVAL,) + nothing[1:]
+    ns = memory[NS]
+    rom_lo, rom_hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, ns0, elbow)
+    code, e_pos, e_rot, residual = qp_line_tick(q, R, p, J, cost_gradient, ns_gradient, R_ref, p_ref, twist,
+                                                limits[2], limits[3], limits[4], ns, rom_lo, rom_hi, gains, qp_tol,
+                                                step, line, H, g, C, l, u, box_l, box_u)
+    bits = (FLAG_Q_OUT_OF_LIMITS if limit == 1 else 0) | (FLAG_ROM_EMPTY if empty else 0)
+    return code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits
+
+
+@njit(cache=True)
+def qp_tick_answer(v, line, box_l, box_u, C, l, u, feasibility_tol, flat, offsets, q, dq_meas, stiffness, dt,
+                   damping, residual, bits):  # type: ignore[no-untyped-def]
+    """The compiled tick after its level-2 QP: the answer ``v = [t; σ]`` judged
+    (:func:`qpnso.hqp.checked_line_answer`) and the command.  Returns ``(code, dq rad/s, q_des rad,
+    τ N·m, status bits)`` (``bits`` plus :func:`answer_bits`); ``code`` ≠ :data:`qpnso.hqp.LINE_ANSWER_OK`:
+    the answer is refused (the caller falls back), the arrays are then meaningless."""
+    code, x, _, slack = checked_line_answer(v, line[1], line[0], box_l, box_u, C, l, u, 1, feasibility_tol)
+    if code != LINE_ANSWER_OK:
+        return code, x, x, x, bits
+    _, _, J, _, _, _, _, _, _, A, gravity = state_views(flat, offsets)
+    tau = qp_torque(A, gravity, J, x, dq_meas, stiffness, dt, damping)
+    return code, x, q + dt * x, tau, bits | answer_bits(residual, slack.max())

@@ -63,6 +63,9 @@ def test_stiffness_double_sigmoid() -> None:
     assert stiffness(ns0, ns0, cfg) < 10.1 and stiffness(ns0 + D(50), ns0, cfg) > 27.0  # soft inside, stiff at ends
     assert np.allclose(k, stiffness(2 * ns0 - x, ns0, cfg))  # symmetric
     assert stiffness(1e6, 0.0, cfg) == pytest.approx(30.0)  # no overflow
+    floats = [stiffness(float(v), ns0, cfg) for v in x]  # the per-tick kernel, one angle at a time
+    assert all(type(v) is float for v in floats)
+    np.testing.assert_allclose(floats, reference, rtol=1e-12)
 
 
 def test_setpoint_saturates() -> None:

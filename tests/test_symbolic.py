@@ -19,6 +19,7 @@ def test_symbolic_model_matches_pinocchio(name: str, rng) -> None:
     tool = sym.frame_placement(robot.tool_frame_id)
     fn = sym.function("check", {
         "R": tool.R, "p": tool.p, "J": sym.frame_jacobian(robot.tool_frame_id), "A": sym.mass_matrix(),
+        "g": sym.gravity_torque(),
     })
     worst = 0.0
     for _ in range(50):
@@ -30,9 +31,24 @@ def test_symbolic_model_matches_pinocchio(name: str, rng) -> None:
             np.abs(np.array(out["p"]).ravel() - pose.translation).max(),
             np.abs(np.array(out["J"]) - robot.jacobian(q)).max(),
             np.abs(np.array(out["A"]) - robot.mass_matrix(q)).max(),
+            np.abs(np.array(out["g"]).ravel() - robot.gravity(q)).max(),
         ]
         worst = max(worst, *errors)
     assert worst < 1e-10, f"largest disagreement with Pinocchio: {worst:.3e}"
+
+
+def test_gravity_is_the_gradient_of_the_potential_energy(lwr, rng) -> None:
+    """g(q) against Pinocchio's potential energy by central differences (an independent route)."""
+    sym = qpnso.SymbolicModel(lwr.model)
+    fn = sym.function("g", {"g": sym.gravity_torque()})
+    data = lwr.model.createData()
+    q = lwr.random_q(rng)
+    h = 1e-6
+    fd = [(pin.computePotentialEnergy(lwr.model, data, q + h * e) - pin.computePotentialEnergy(lwr.model, data, q - h * e))
+          / (2 * h) for e in np.eye(7)]
+    g = np.array(fn(q=q)["g"]).ravel()
+    assert np.abs(g).max() > 1.0  # the arm does weigh something
+    np.testing.assert_allclose(g, fd, rtol=0, atol=1e-6)
 
 
 def test_every_joint_placement_matches(lwr, rng) -> None:

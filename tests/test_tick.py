@@ -32,13 +32,13 @@ def pair(robot, **cfg) -> tuple[Controller, Controller]:
 
 
 def count_compiled(ctrl: Controller, monkeypatch) -> list[int]:
-    """Counts the ticks the compiled path answered (its return value is not None)."""
+    """Counts the ticks the compiled path answered (it returned the Command, not a hand-over)."""
     hits = [0]
     original = ctrl._compiled
 
     def spy(*args):
         out = original(*args)
-        hits[0] += out is not None
+        hits[0] += type(out) is qpnso.Command
         return out
     monkeypatch.setattr(ctrl, "_compiled", spy)
     return hits
@@ -148,6 +148,60 @@ def test_qp_torque_is_gravity_plus_projected_impedance(robot) -> None:
     np.testing.assert_allclose(tau, expected, rtol=0, atol=1e-6 * np.linalg.norm(expected))
 
 
+def test_elbow_advance_unwraps_the_arm_angle_and_ages_the_interval() -> None:
+    rng = np.random.default_rng(4)
+    path = np.cumsum(rng.uniform(-0.5, 0.5, 400)) + 3.0  # crosses ±π many times
+    memory = tick.elbow_memory(path[0])
+    pose = rng.normal(size=12)
+    unwrapped = []
+    for ns in path:
+        value, recompute = tick.elbow_advance(float(np.angle(np.exp(1j * ns))), pose, memory, 10, 1e-6)
+        assert recompute  # no interval known yet
+        unwrapped.append(value)
+    np.testing.assert_allclose(unwrapped, path, atol=1e-12)
+    tick.store_interval(memory, -1.0, 2.0, False, pose)
+    moved = pose + 2e-6
+    answers = [tick.elbow_advance(memory[tick.NS], p, memory, 10, 1e-6)[1] for p in [pose] * 12 + [moved] * 12]
+    # the same pose keeps the interval at any age; a moved tool renews it once it is 10 ticks old
+    assert answers == [False] * 12 + [True] * 12
+    assert memory[tick.IV_AGE] == 24
+
+
+def test_elbow_bounds_are_the_shifted_interval_clipped_and_the_sigmoid() -> None:
+    rng = np.random.default_rng(5)
+    cfg = qpnso.ElbowConfig(half_width_deg=50, safety_margin_deg=10)
+    params = tick.elbow_parameters(cfg.half_width_rad, cfg.safety_margin_rad, cfg.stiffness_min, cfg.stiffness_max,
+                                   cfg.alpha_per_rad, cfg.d_rad, 0.1, 0.01, 10)
+    for _ in range(300):
+        lo = rng.uniform(-4, 4)
+        hi = lo + rng.uniform(0.1, 6.0)
+        full = bool(rng.random() < 0.2)
+        memory = tick.elbow_memory(0.0)
+        tick.store_interval(memory, lo, hi, full, np.zeros(12))
+        turns = int(rng.integers(-3, 4))
+        ns = rng.uniform(lo, hi) + 2 * np.pi * turns
+        ns0 = ns + rng.uniform(-1.5, 1.5)
+        interval = qpnso.Interval(ns - np.pi, ns + np.pi, True) if full else \
+            qpnso.Interval(lo + 2 * np.pi * turns, hi + 2 * np.pi * turns, False)
+        expected = qpnso.clip_rom(ns0, cfg.half_width_rad, interval, cfg.safety_margin_rad)
+        rom_lo, rom_hi, empty, iv_lo, iv_hi, k = tick.elbow_bounds(ns, memory, ns0, params)
+        assert (iv_lo, iv_hi) == pytest.approx((interval.lo, interval.hi), abs=1e-12)
+        assert (rom_lo, rom_hi, empty) == pytest.approx((expected.lo, expected.hi, expected.empty), abs=1e-12)
+        span = cfg.stiffness_max - cfg.stiffness_min
+        assert k == pytest.approx(span / (1 + np.exp(cfg.alpha_per_rad * (cfg.d_rad - abs(ns - ns0)))) + 10, rel=1e-12)
+    unknown = tick.elbow_bounds(1.0, tick.elbow_memory(1.0), 1.0, params)
+    assert unknown[3:5] == pytest.approx((1.0 - np.pi, 1.0 + np.pi))  # no interval yet: the circle around ns
+
+
+def test_answer_bits_are_the_status_flags() -> None:
+    assert Status(tick.answer_bits(1e-3, 0.0)) == Status.TOOL_LIMITED
+    assert Status(tick.answer_bits(0.0, 1e-2)) == Status.ELBOW_SLACK
+    assert tick.answer_bits(-1.0, -1.0) == 0
+    for name in ("QP_FAILED", "ELBOW_DROPPED", "ELBOW_SLACK", "ROM_EMPTY", "Q_OUT_OF_LIMITS", "INTERVAL_STALE",
+                 "TOOL_LIMITED"):
+        assert Status[name].value == getattr(tick, f"FLAG_{name}")
+
+
 # ------------------------------------------------------ compiled = general
 def test_held_tool_ticks_equal_the_general_path(robot, monkeypatch) -> None:
     fast, slow = pair(robot)
@@ -236,6 +290,36 @@ def test_non_finite_level_two_answer_holds_the_tool(robot, monkeypatch) -> None:
     assert_same(a, b)
 
 
+def test_interval_that_cannot_be_renewed_is_flagged_stale_on_both_paths(robot, monkeypatch) -> None:
+    fast, slow = pair(robot)
+    for ctrl in (fast, slow):
+        ctrl.reset(Q0)
+    twist = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.0])
+    q = Q0.copy()
+    for k in range(40):
+        if k == 5:  # from here on the interval cannot be computed: the last one stands, flagged
+            def singular(*args):
+                raise qpnso.SingularityError("test: no interval")
+            monkeypatch.setattr(qpnso.controller, "continuity_interval", singular)
+        a, b = fast.step(q, tool_twist=twist), slow.step(q, tool_twist=twist)
+        assert_same(a, b, tol=1e-11)
+        assert bool(a.status & Status.INTERVAL_STALE) == (k >= 10)  # renewed every 10 ticks while moving
+        q = q + DT * a.dq
+
+
+def test_nan_q_is_refused_before_anything_advances(robot) -> None:
+    fast, _ = pair(robot)
+    fast.reset(Q0)
+    fast.step(Q0)
+    memory, steps, ref = fast._elbow_memory.copy(), fast.step_count, fast.ref_position.copy()
+    bad = Q0.copy()
+    bad[3] = np.nan
+    with pytest.raises(ValueError, match=r"q"):
+        fast.step(bad, tool_twist=np.ones(6))
+    assert np.array_equal(fast._elbow_memory, memory) and fast.step_count == steps
+    assert np.array_equal(fast.ref_position, ref)
+
+
 def test_compiled_tick_with_a_qpsolvers_back_end_equals_the_general_path(robot, monkeypatch) -> None:
     """The compiled tick hands its line QP to any back end (here DAQP, exact active set)."""
     fast, slow = pair(robot, qp_backend="daqp")
@@ -256,8 +340,11 @@ def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
     from qpnso import hqp, linalg
 
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
-    kernels = [tick.qp_line_tick, tick.qp_torque, tick.limits_status, tick.max_abs_difference, linalg.least_norm_line,
-               hqp.task_line, hqp.least_norm_point]
+    from qpnso import rom, state
+
+    kernels = [tick.qp_tick, tick.qp_tick_answer, tick.qp_line_tick, tick.limits_status, tick.max_abs_difference,
+               tick.elbow_advance, tick.elbow_bounds, state.state_views, rom.clipped_bounds, linalg.least_norm_line,
+               hqp.task_line, hqp.least_norm_point, hqp.checked_line_answer]
     before = [len(k.signatures) for k in kernels]
     ctrl.reset(Q0)
     wide = np.tile(Q0[:, None], (1, 3))  # a column of it is a strided view

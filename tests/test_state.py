@@ -1,0 +1,66 @@
+"""The tick's state (qpnso/state.py) against independent computations: Pinocchio for the kinematics
+and dynamics, the arm-angle module (numeric, Pinocchio-based) for the elbow, the cost model's own
+functions and central differences for the cost and its gradient."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+import qpnso
+from qpnso import elbow as E
+from qpnso.costs import CostModel, CostWeights
+from qpnso.state import StateEvaluator, state_views
+
+
+@pytest.fixture(scope="module")
+def evaluator() -> StateEvaluator:
+    robot = qpnso.load_robot("lwr4p")
+    return StateEvaluator(CostModel(robot, CostWeights(mass=1.0, friction_force=0.5)), compile="off")
+
+
+def test_every_field_matches_its_independent_computation(evaluator, rng) -> None:
+    robot, cost = evaluator.robot, CostModel(evaluator.robot, CostWeights(mass=1.0, friction_force=0.5),
+                                             compile="off")
+    data = robot.model.createData()
+    checked = 0
+    while checked < 10:
+        q = robot.random_q(rng, margin=0.2)
+        elbow = E.arm_angle_status(robot, q)
+        if elbow.status != "ok":  # arm angle undefined there: not a case for its gradient
+            continue
+        checked += 1
+        s = evaluator(q)
+        pose = robot.tool_pose(q)
+        np.testing.assert_allclose(s.tool_rotation, pose.rotation, atol=1e-12)
+        np.testing.assert_allclose(s.tool_position, pose.translation, atol=1e-12)
+        np.testing.assert_allclose(s.jacobian, robot.jacobian(q), atol=1e-12)
+        A = pin.crba(robot.model, data, q)
+        np.testing.assert_allclose(s.mass_matrix, np.triu(A) + np.triu(A, 1).T, atol=1e-12)
+        np.testing.assert_allclose(s.gravity, pin.computeGeneralizedGravity(robot.model, data, q), atol=1e-10)
+        assert s.cost == pytest.approx(cost.value(q), rel=1e-12)
+        h = 1e-6
+        fd = [(cost.value(q + h * e) - cost.value(q - h * e)) / (2 * h) for e in np.eye(7)]
+        np.testing.assert_allclose(s.cost_gradient, cost.gradient(q), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(s.cost_gradient, fd, rtol=0, atol=1e-5 * np.abs(fd).max())  # atan friction: stiff
+        assert s.arm_angle == pytest.approx(elbow.value, abs=1e-12)
+        np.testing.assert_allclose(s.arm_angle_gradient, E.arm_angle_gradient(robot, q), atol=1e-9)
+        assert (s.wrist_sin, s.elbow_offset) == pytest.approx((elbow.wrist_sin, elbow.elbow_offset_m), abs=1e-12)
+        np.testing.assert_array_equal(s.pose, np.r_[s.tool_rotation.ravel(order="F"), s.tool_position])
+
+
+def test_fields_are_views_of_one_array_and_raw_is_the_same_state(evaluator) -> None:
+    q = evaluator.robot.sample_configuration()
+    s = evaluator(q)
+    base = s.pose.base
+    for field in (s.tool_rotation, s.tool_position, s.jacobian, s.mass_matrix, s.gravity, s.cost_gradient):
+        assert np.shares_memory(field, base)
+    flat = evaluator.raw(q)
+    assert flat.shape == (evaluator.offsets[-1],)
+    again = evaluator.state(q, flat.copy())
+    for a, b in ((s.jacobian, again.jacobian), (s.mass_matrix, again.mass_matrix), (s.gravity, again.gravity)):
+        np.testing.assert_array_equal(a, b)
+    assert flat is evaluator.raw(q + 0.01)  # the evaluator's buffer, overwritten by the next call
+    views = state_views(flat, evaluator.offsets)
+    assert len(views) == len(evaluator.offsets)  # ten parts; the two singularity measures come apart

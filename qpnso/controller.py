@@ -366,9 +366,11 @@ class Controller:
         flat = self.evaluate.raw(qv)
         t1 = time.perf_counter()
         buf, stale = self._line, False
-        tick = self._qp_tick(qv, flat, twist, True)
-        if tick[0] == TICK_NEED_INTERVAL:
+        tick, t_interval = self._qp_tick(qv, flat, twist, True), 0.0
+        if tick[0] == TICK_NEED_INTERVAL:  # (its time is not the QP's)
+            t_interval = time.perf_counter()
             stale = self._update_interval(qv, flat[:12])
+            t_interval = time.perf_counter() - t_interval
             tick = self._qp_tick(qv, flat, twist, False)
         code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits = tick
         if code == TICK_NOT_FINITE:
@@ -399,8 +401,8 @@ class Controller:
             _, _, J, _, _, _, _, _, _, A, gravity = state_views(flat, self.evaluate.offsets)
             tau = qp_torque(A, gravity, J, dq_cmd, dq_meas, k, self.config.dt, self.config.joint_damping)
         t2 = time.perf_counter()
-        return Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, _status(bits), t2 - t1,
-                       t2 - t0, (e_pos, e_rot), message)
+        return Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, _status(bits),
+                       t2 - t1 - t_interval, t2 - t0, (e_pos, e_rot), message)
 
     def _qp_tick(self, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool) -> tuple:
         """:func:`qpnso.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""

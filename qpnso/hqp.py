@@ -99,7 +99,7 @@ from numba import njit
 from scipy.linalg import lapack as _lapack
 
 from qpnso.errors import ConfigError, InputError, SolverError
-from qpnso.linalg import least_norm_line
+from qpnso.linalg import dot, least_norm_line, matvec
 
 __all__ = [
     "Cascade",
@@ -679,17 +679,17 @@ def line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale,
     ``t``, free slacks.  Returns ``H, g, C, l, u, box_l, box_u`` and whether the task owns ``d``."""
     curvature, slope, owned = 0.0, 0.0, False
     if A.shape[0]:
-        ad = A @ d
-        s2 = ad @ ad
-        slope += 2.0 * (ad @ (A @ x0 - b))
+        ad = matvec(A, d)
+        s2 = dot(ad, ad)
+        slope += 2.0 * dot(ad, matvec(A, x0) - b)
         if np.sqrt(s2) > rank_tol * max(1.0, np.sqrt(s2)):
             curvature, owned = 2.0 * max(s2, damping * damping), True
     if H.shape[0]:
-        hd = H @ d
-        curvature += d @ hd
-        slope += hd @ x0
+        hd = matvec(H, d)
+        curvature += dot(d, hd)
+        slope += dot(hd, x0)
     if g.shape[0]:
-        slope += d @ g
+        slope += dot(d, g)
     if reg > 0.0 and not owned:
         curvature += reg
     nv, p = 1 + n_slack, C.shape[0]

@@ -27,6 +27,42 @@ REGULARIZATION = 1e-12
 
 
 @njit(cache=True)
+def dot(a, b):  # type: ignore[no-untyped-def]
+    """``aᵀb`` of two vectors."""
+    acc = 0.0
+    for i in range(a.shape[0]):
+        acc += a[i] * b[i]
+    return acc
+
+
+@njit(cache=True)
+def matvec(A, x):  # type: ignore[no-untyped-def]
+    """``A x`` (``A`` (m, n), any layout).  The kernels' products are written as loops: at these
+    sizes (n ≤ 7) a BLAS call costs more than the arithmetic, and every ``@`` of a new layout
+    costs seconds of Numba compilation."""
+    m, n = A.shape
+    y = np.zeros(m)
+    for i in range(m):
+        for j in range(n):
+            y[i] += A[i, j] * x[j]
+    return y
+
+
+@njit(cache=True)
+def matmul(A, B):  # type: ignore[no-untyped-def]
+    """``A B`` (any layouts)."""
+    m, k = A.shape
+    n = B.shape[1]
+    C = np.zeros((m, n))
+    for i in range(m):
+        for p in range(k):
+            a = A[i, p]
+            for j in range(n):
+                C[i, j] += a * B[p, j]
+    return C
+
+
+@njit(cache=True)
 def least_norm_line(A, b):  # type: ignore[no-untyped-def]
     """``(x0, d, σ_floor)`` for ``A`` (n−1, n) and ``b`` (n−1,): ``x0 = A⁺b``, ``d`` a unit vector
     with ``A d = 0`` and ``σ_floor = 1/‖R⁻¹‖_F ≤ σ_min(A)`` (conservative by at most √(n−1));
@@ -130,11 +166,10 @@ def cholesky_solve(L, b):  # type: ignore[no-untyped-def]
 @njit(cache=True)
 def nullspace_part(J, v):  # type: ignore[no-untyped-def]
     """``v − J⁺Jv`` (``JJᵀ`` regularised by 1e-12 of its trace); ``v`` unchanged if that fails."""
-    jjt = J @ J.T
-    L, ok = cholesky(jjt, REGULARIZATION)
+    L, ok = cholesky(matmul(J, J.T), REGULARIZATION)
     if not ok:
         return v.copy()
-    return v - J.T @ cholesky_solve(L, J @ v)
+    return v - matvec(J.T, cholesky_solve(L, matvec(J, v)))
 
 
 @njit(cache=True)
@@ -148,7 +183,7 @@ def dynamically_consistent_projection(A, J, tau):  # type: ignore[no-untyped-def
     W = np.empty((n, m))  # A⁻¹ Jᵀ
     for k in range(m):
         W[:, k] = cholesky_solve(LA, J[k].copy())
-    LL, ok = cholesky(J @ W, REGULARIZATION)
+    LL, ok = cholesky(matmul(J, W), REGULARIZATION)
     if not ok:
         return tau.copy(), False
-    return tau - J.T @ cholesky_solve(LL, W.T @ tau), True
+    return tau - matvec(J.T, cholesky_solve(LL, matvec(W.T, tau))), True

@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from qpnso.hqp import LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, task_line
-from qpnso.linalg import dynamically_consistent_projection, nullspace_part
+from qpnso.linalg import dot, dynamically_consistent_projection, matmul, matvec, nullspace_part
 from qpnso.rom import clipped_bounds, sigmoid_stiffness
 from qpnso.state import state_views
 
@@ -38,7 +38,7 @@ LOG3_MAX_ANGLE = math.pi - 1e-3
 its axis is ill-conditioned; the caller then uses ``pinocchio.log3``."""
 
 LINE_NO_POSE = 3
-"""A code of :func:`qp_line_tick` besides those of :func:`qpnso.hqp.task_line`: the rotation error is
+"""A code of :func:`qp_tick` besides those of :func:`qpnso.hqp.task_line`: the rotation error is
 too close to π for the kernel's log₃."""
 TICK_NOT_FINITE = 4
 """A code of :func:`qp_tick`: ``q`` has a NaN or an infinite entry; nothing was done (the caller raises)."""
@@ -68,7 +68,7 @@ TWO_PI = 2.0 * math.pi
 def pose_error(R, p, R_ref, p_ref):  # type: ignore[no-untyped-def]
     """``(e, ok)``: ``e = (p_ref − p, log₃(R_ref Rᵀ))`` (6,), m then rad, world frame, as
     ``pinocchio.log3``; ``ok`` False when the angle exceeds :data:`LOG3_MAX_ANGLE` (``e`` then partial)."""
-    E = R_ref @ R.T
+    E = matmul(R_ref, R.T)
     e = np.empty(6)
     for i in range(3):
         e[i] = p_ref[i] - p[i]
@@ -125,7 +125,7 @@ def cost_step(J, cost_gradient, gain, speed_max):  # type: ignore[no-untyped-def
     null space can do) is at most ``speed_max`` rad/s (the saturation of [M 21])."""
     step = gain * cost_gradient
     free = nullspace_part(J, step)
-    norm = math.sqrt(free @ free)
+    norm = math.sqrt(dot(free, free))
     if norm > speed_max:
         step *= speed_max / norm
     return step
@@ -226,7 +226,7 @@ def elbow_bounds(ns, memory, ns0, params):  # type: ignore[no-untyped-def]
 
 
 class LineTickBuffers:
-    """The arrays :func:`qp_line_tick` writes, allocated once per controller (nothing is boxed
+    """The arrays :func:`qp_tick` writes, allocated once per controller (nothing is boxed
     per tick): ``step`` the cost step's filter state (rad/s, read and advanced), ``line`` (3, n)
     the rows ``x0``, ``d``, ``x1`` (rad/s), and the level-2 line QP ``H, g, C, l, u, box_l, box_u``
     (``v = [t; σ]``, one soft elbow row) in the shapes of :func:`qpnso.hqp.line_qp_arrays`."""
@@ -242,42 +242,6 @@ class LineTickBuffers:
 
     def outputs(self) -> tuple:
         return self.step, self.line, self.H, self.g, self.C, self.l, self.u, self.box_l, self.box_u
-
-
-@njit(cache=True)
-def qp_line_tick(q, R, p, J, cost_gradient, arm_angle_gradient, R_ref, p_ref, twist, q_min, q_max, dq_max,
-                 ns, rom_lo, rom_hi, gains, qp_tol,
-                 step, line, H, g, C, l, u, box_l, box_u):  # type: ignore[no-untyped-def]
-    """State → level-2 line QP of the ``qp`` strategy, in one call (module doc).
-
-    ``gains`` = (pose gain 1/s, joint-limit gain 1/s, cost gain, null-space speed max rad/s,
-    filter α, elbow gain 1/s, slack scale 1/√(2ρ)); ``qp_tol`` = (rank_tol, damping threshold,
-    regularisation μ).  Writes the arrays of :class:`LineTickBuffers` (``step`` in and out) and
-    returns ``(code, ‖e_p‖ m, ‖e_R‖ rad, ‖J x1 − b1‖)``: the pose error's norms and level 1's
-    residual at its least-norm point ``x1`` (the safe fallback).  ``code`` ≠ :data:`LINE_OK`
-    sends the tick to the general path; then nothing was written (``step`` not advanced)."""
-    n = q.shape[0]
-    e, ok = pose_error(R, p, R_ref, p_ref)
-    e_pos = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
-    e_rot = math.sqrt(e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
-    if not ok:
-        return LINE_NO_POSE, e_pos, e_rot, 0.0
-    b1 = twist + gains[0] * e
-    rank_tol, damping, reg = qp_tol[0], qp_tol[1], qp_tol[2]
-    lb, ub = velocity_bounds(q, q_min, q_max, dq_max, gains[1])
-    code, x0, d, t_lo, t_hi = task_line(J, b1, lb, ub, rank_tol, damping)
-    if code != LINE_OK:
-        return code, e_pos, e_rot, 0.0
-    x1 = least_norm_point(x0, d, t_lo, t_hi)
-    r = J @ x1 - b1
-    step[:] = low_pass(step, cost_step(J, cost_gradient, gains[2], gains[3]), gains[4])
-    row = arm_angle_gradient.reshape(1, n).copy()
-    lo, hi = elbow_row_bounds(ns, rom_lo, rom_hi, gains[5])
-    empty, none = np.zeros(0), np.zeros((0, n))
-    H[:], g[:], C[:], l[:], u[:], box_l[:], box_u[:], _ = line_qp_arrays(
-        d, x0, t_lo, t_hi, none, empty, np.eye(n), step, row, lo, hi, 1, gains[6], reg, rank_tol, damping)
-    line[0], line[1], line[2] = x0, d, x1
-    return LINE_OK, e_pos, e_rot, math.sqrt(r @ r)
 
 
 @njit(cache=True)
@@ -297,15 +261,24 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     ``offsets``); ``limits`` (5, n) the rows q_low, q_high (``q`` as checked), q_min, q_max (rad),
     dq_max (rad/s); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
     ROM centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
+    ``gains`` = (pose gain K_p 1/s, joint-limit gain 1/s, cost gain, null-space speed max rad/s, filter α,
+    elbow gain 1/s, slack scale 1/√(2ρ)); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ).
+
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`), the arm angle's singularity
-    (:data:`TICK_ELBOW_DROPPED`), the elbow (:func:`elbow_advance`, :func:`elbow_bounds`), then
-    :func:`qp_line_tick` into the buffers.  Returns ``(code, ns, rom_lo, rom_hi, iv_lo, iv_hi, K,
-    ‖e_p‖, ‖e_R‖, level-1 residual, cost, status bits)``; ``code`` is :data:`qpnso.hqp.LINE_OK` when
-    the line QP is ready, one of :func:`qp_line_tick`'s others when the general path must solve it."""
+    (:data:`TICK_ELBOW_DROPPED`), the elbow (:func:`elbow_advance`, :func:`elbow_bounds`), level 1's
+    error (:func:`pose_error`; :data:`LINE_NO_POSE` near π), its line of exact solutions within the
+    joint bounds (:func:`qpnso.hqp.task_line`) and least-norm point ``x1`` (the safe fallback), the
+    filtered cost step and the elbow row, and the level-2 line QP (:func:`qpnso.hqp.line_qp_arrays`)
+    written into the buffers of :class:`LineTickBuffers` (``step`` read and advanced).  Returns
+    ``(code, ns, rom_lo, rom_hi, iv_lo, iv_hi, K, ‖e_p‖, ‖e_R‖, ‖J x1 − b1‖, cost, status bits)``;
+    ``code`` is :data:`qpnso.hqp.LINE_OK` when the line QP is ready; :data:`LINE_NO_POSE`,
+    :data:`qpnso.hqp.LINE_SINGULAR` or :data:`qpnso.hqp.LINE_CUT` send the tick to the general path,
+    the elbow advanced but no buffer written."""
     nothing = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
     limit = limits_status(q, limits[0], limits[1])
     if limit == 2:
         return (TICK_NOT_FINITE,) + nothing[1:]
+    n = q.shape[0]
     R, p, J, cost, cost_gradient, ns_wrapped, ns_gradient, wrist_sin, elbow_offset, _, _ = state_views(flat, offsets)
     if wrist_sin < elbow[6] or elbow_offset < elbow[7]:
         return (TICK_ELBOW_DROPPED,) + nothing[1:]
@@ -315,11 +288,27 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
             return (TICK_NEED_INTERVAL,) + nothing[1:]
     ns = memory[NS]
     rom_lo, rom_hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, ns0, elbow)
-    code, e_pos, e_rot, residual = qp_line_tick(q, R, p, J, cost_gradient, ns_gradient, R_ref, p_ref, twist,
-                                                limits[2], limits[3], limits[4], ns, rom_lo, rom_hi, gains, qp_tol,
-                                                step, line, H, g, C, l, u, box_l, box_u)
     bits = (FLAG_Q_OUT_OF_LIMITS if limit == 1 else 0) | (FLAG_ROM_EMPTY if empty else 0)
-    return code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits
+    e, ok = pose_error(R, p, R_ref, p_ref)  # level 1: J q̇ = twist + K_p e
+    e_pos = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    e_rot = math.sqrt(e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
+    if not ok:
+        return LINE_NO_POSE, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, 0.0, cost, bits
+    b1 = twist + gains[0] * e
+    rank_tol, damping, reg = qp_tol[0], qp_tol[1], qp_tol[2]
+    lb, ub = velocity_bounds(q, limits[2], limits[3], limits[4], gains[1])
+    code, x0, d, t_lo, t_hi = task_line(J, b1, lb, ub, rank_tol, damping)
+    if code != LINE_OK:
+        return code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, 0.0, cost, bits
+    x1 = least_norm_point(x0, d, t_lo, t_hi)  # level 1's answer, the safe fallback
+    r = matvec(J, x1) - b1
+    step[:] = low_pass(step, cost_step(J, cost_gradient, gains[2], gains[3]), gains[4])  # level 2
+    lo, hi = elbow_row_bounds(ns, rom_lo, rom_hi, gains[5])
+    H[:], g[:], C[:], l[:], u[:], box_l[:], box_u[:], _ = line_qp_arrays(
+        d, x0, t_lo, t_hi, np.zeros((0, n)), np.zeros(0), np.eye(n), step, ns_gradient.reshape(1, n).copy(), lo, hi,
+        1, gains[6], reg, rank_tol, damping)
+    line[0], line[1], line[2] = x0, d, x1
+    return LINE_OK, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, math.sqrt(dot(r, r)), cost, bits
 
 
 @njit(cache=True)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from qpnso.linalg import (cholesky, cholesky_solve, dynamically_consistent_projection, least_norm_line,
-                          nullspace_part)
+from qpnso.linalg import (cholesky, cholesky_solve, dot, dynamically_consistent_projection, least_norm_line,
+                          matmul, matvec, nullspace_part)
 
 
 def _upper_only(M: np.ndarray) -> np.ndarray:
@@ -14,6 +14,19 @@ def _upper_only(M: np.ndarray) -> np.ndarray:
     out = M.copy()
     out[np.tril_indices_from(out, -1)] = 1e6
     return out
+
+
+def test_small_products_equal_numpy_in_every_layout():
+    rng = np.random.default_rng(7)
+    A, B = rng.standard_normal((6, 7)), rng.standard_normal((7, 3))
+    x, y = rng.standard_normal(7), rng.standard_normal(6)
+    for a in (A, np.asfortranarray(A), A.T.copy().T):  # C, F and a transposed view
+        np.testing.assert_allclose(matvec(a, x), A @ x, rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(matvec(a.T, y), A.T @ y, rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(matmul(a, B), A @ B, rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(matmul(a, a.T), A @ A.T, rtol=1e-14, atol=1e-14)
+    assert dot(x, x) == pytest.approx(x @ x, rel=1e-15)
+    assert matvec(np.zeros((0, 7)), x).shape == (0,)
 
 
 @pytest.mark.parametrize("seed", range(20))

@@ -342,7 +342,7 @@ def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     from qpnso import rom, state
 
-    kernels = [tick.qp_tick, tick.qp_tick_answer, tick.qp_line_tick, tick.limits_status, tick.max_abs_difference,
+    kernels = [tick.qp_tick, tick.qp_tick_answer, tick.limits_status, tick.max_abs_difference,
                tick.elbow_advance, tick.elbow_bounds, state.state_views, rom.clipped_bounds, linalg.least_norm_line,
                hqp.task_line, hqp.least_norm_point, hqp.checked_line_answer]
     before = [len(k.signatures) for k in kernels]

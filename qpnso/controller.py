@@ -6,7 +6,8 @@
 1. the arm's state from one CasADi call (:mod:`qpnso.state`);
 2. the elbow: arm angle unwrapped along the run, continuity interval
    (:mod:`qpnso.intervals`, cached while the tool pose is unchanged), the ROM
-   clipped to it with the safety margin, the stiffness sigmoid (:mod:`qpnso.rom`);
+   clipped to it with the safety margin, the stiffness sigmoid (:mod:`qpnso.rom`),
+   kept across ticks in one elbow-memory array by the kernels of :mod:`qpnso.tick`;
 3. the hierarchical QP (:mod:`qpnso.hqp`): level 1 ``J q̇ = v_tool + K_p e_pose``,
    level 2 whatever the strategy asks (:mod:`qpnso.strategies`), hard joint
    position/velocity bounds on both;

@@ -44,9 +44,11 @@ two levels, the general cascade below runs.  The small factorisations are
 Numba kernels (:mod:`qpnso.linalg`).  Same answers as the general cascade
 (tests); on 300 recorded controller ticks (``solve(check=False)``, interleaved
 runs) 77–95 µs median per solve against 195–223 µs for the general cascade.
-Level 2 on the line is :meth:`HierarchicalQP.solve_line_level`; the
-controller's compiled tick (:mod:`qpnso.tick`) builds its arrays in one kernel
-and calls that method directly.
+Level 2 on the line is :meth:`HierarchicalQP.solve_line_level`
+(:meth:`~HierarchicalQP.line_level_raw`, then :meth:`~HierarchicalQP.line_level_result`); the
+controller's compiled tick (:mod:`qpnso.tick`) builds its arrays in one kernel,
+calls ``line_level_raw`` and judges the answer with the same kernel
+(:func:`checked_line_answer`) in its own.
 
 The Hessian carries a tie-break ``½ μ ‖z‖²`` only in the directions that the
 level's own task leaves free (``μ = QPSettings.regularization``: 1e-7 for the
@@ -1084,7 +1086,7 @@ class HierarchicalQP:
 
     def count_solve(self, ok: bool) -> None:
         """Count one cascade in ``stats`` (:meth:`solve` does; so does a caller that solves the
-        line's level 2 itself through :meth:`solve_line_level`, the controller's compiled tick)."""
+        line's level 2 itself through :meth:`line_level_raw`, the controller's compiled tick)."""
         self.stats.solves += 1
         if not ok:
             self.stats.failures += 1

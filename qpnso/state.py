@@ -1,9 +1,9 @@
 """What every strategy needs to know about the arm at one control tick.
 
 One compiled CasADi function evaluates, from ``q`` alone, the tool pose, the
-tool Jacobian, the weighted cost and its exact gradient, and the arm angle with
-its exact gradient and singularity measures, and the dynamics a torque command needs (``A(q)``, ``g(q)``) — one call per
-tick instead of seven (:class:`StateEvaluator`).
+tool Jacobian, the weighted cost and its exact gradient, the arm angle with its
+exact gradient and singularity measures, and the dynamics a torque command needs
+(``A(q)``, ``g(q)``): one call per tick instead of seven (:class:`StateEvaluator`).
 """
 
 from __future__ import annotations

@@ -463,17 +463,21 @@ def test_property_level_two_never_changes_level_one_residual(seed, m1):
 
 
 @pytest.mark.parametrize("seed, m1", [(412, 1), (2142, 2), (2898, 3)])
-def test_degenerate_level_two_fails_on_proxqp_and_is_solved_by_an_active_set_back_end(seed, m1):
+def test_degenerate_level_two_is_solved_or_reported_and_daqp_solves_it(seed, m1):
     """Level 1 pushed onto many joint bounds (7, 6 and 5 of 7 here) leaves level 2 a feasible set
-    with no interior: ProxQP (warm, then cold) stops at max_iter or reports it infeasible, about
-    0.3 % of these random problems (7 of 2574 measured); DAQP solves the same cascade, with the
-    same level-1 residual.  The failure is reported, never hidden: the controller's safe command."""
+    with no interior: ProxQP (warm, then cold) often stops at max_iter or reports it infeasible
+    (about 0.3 % of these random problems, 7 of 2574 measured; not always the same ones from run
+    to run), while DAQP solves the same cascade.  Either way level 1's residual is the same, and a
+    failure is reported with level 1's answer kept (the controller's safe command), never hidden."""
     levels, lb, ub = random_problem(seed, m1=m1, bound=0.3, v_scale=1.0)
     prox = HierarchicalQP(N).solve(levels, lb, ub)
     exact = HierarchicalQP(N, backend="daqp").solve(levels, lb, ub)
-    assert not prox.ok and prox.failed_level == 1
-    assert exact.ok
+    assert exact.ok and prox.levels[0].ok
     assert abs(exact.levels[0].residual - prox.levels[0].residual) < 1e-9
+    if prox.ok:  # (seen in one process out of about ten, after thousands of iterations)
+        assert np.all(prox.x >= lb - 1e-8) and np.all(prox.x <= ub + 1e-8)
+    else:
+        assert prox.failed_level == 1 and np.array_equal(prox.x, prox.levels[0].x)
 
 
 # ---------------------------------------------------------------- bad input

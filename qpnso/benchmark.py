@@ -100,12 +100,6 @@ def bench_interval(robot: Robot, n: int = 1000, seed: int = 0) -> list[Timing]:
                    note="random q")]
 
 
-def held_tool_run(ctrl, q0: np.ndarray, n: int) -> np.ndarray:
-    """Seconds per ``step`` over ``n`` ticks with the tool held, integrating ``q ← q + dt·dq``."""
-    ctrl.reset(q0)
-    return held_tool_ticks(ctrl, q0)(n)
-
-
 def held_tool_ticks(ctrl, q0: np.ndarray) -> Callable[[int], np.ndarray]:
     """A run with the tool held from ``q0`` (already reset), advanced by ``k`` ticks per call:
     returns the seconds of each ``step``, integrating ``q ← q + dt·dq`` across calls."""

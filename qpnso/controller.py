@@ -40,26 +40,25 @@ import pinocchio as pin
 
 from qpnso.costs import CostModel, CostWeights
 from qpnso.errors import ConfigError, QpnsoError
-from qpnso.hqp import LINE_ANSWER_OK, HierarchicalQP, Level, LevelStatus, QPSettings, level_failure
+from qpnso.hqp import LINE_ANSWER_OK, HierarchicalQP, Level, QPSettings, level_failure, solved_vector
 from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.intervals import continuity_interval
 from qpnso.linalg import dynamically_consistent_projection
 from qpnso.robot import Robot, as_vector
 from qpnso.rom import ElbowConfig, stiffness
-from qpnso.state import StateEvaluator, TickState, state_views
-from qpnso.tick import (ELBOW_SLACK_REPORTED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_INTERVAL_STALE,  # noqa: F401
-                         FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, LINE_OK, NS,
-                         TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, TOOL_MOVED_TOL,
-                         TOOL_RESIDUAL_REPORTED, LineTickBuffers, answer_bits, elbow_advance, elbow_bounds,
-                         elbow_memory, elbow_parameters, limits_status, pose_error, qp_tick, qp_tick_answer, qp_torque,
-                         store_interval, velocity_bounds)
+from qpnso.state import StateEvaluator, TickState
+from qpnso.tick import (FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS,
+                         FLAG_QP_FAILED, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, LINE_OK, NS, P_MOVED_TOL, P_PERIOD,
+                         TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, LineTickBuffers, answer_bits,
+                         arm_angle_singular, elbow_advance, elbow_bounds, elbow_memory, elbow_parameters,
+                         limits_status, pose_error, qp_command, qp_tick, qp_tick_answer, store_interval,
+                         velocity_bounds)
 
 def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Status:
     """Flags of a solved tick: level 1's residual (``TOOL_LIMITED``) and the elbow rows' slack
     (``ELBOW_SLACK``) against what is reported (:func:`qpnso.tick.answer_bits`)."""
-    bits = answer_bits(-1.0 if tool_residual is None else tool_residual,
-                       slack.max() if slack is not None and slack.size else -1.0)
-    return Status(bits) if bits else Status.OK
+    return _status(answer_bits(-1.0 if tool_residual is None else tool_residual,
+                               slack.max() if slack is not None and slack.size else -1.0))
 
 
 def _status(bits: int) -> "Status":
@@ -384,9 +383,9 @@ class Controller:
             elbow = ElbowState(ns, (rom_lo, rom_hi), (iv_lo, iv_hi), k, _status(bits & _ELBOW_BITS))
             return self.evaluate.state(qv, flat.copy()), elbow, _status(bits)
         raw = self.qp.line_level_raw(buf.H, buf.g, buf.C, buf.l, buf.u, buf.box_l, buf.box_u, buf.x0, buf.d, 1)
-        answer = None
-        if raw.status is LevelStatus.SOLVED and raw.v is not None and raw.v.shape == buf.box_l.shape:
-            answer = qp_tick_answer(raw.v, buf.line, buf.box_l, buf.box_u, buf.C, buf.l, buf.u,
+        v, answer = solved_vector(raw, buf.box_l.shape), None
+        if v is not None:
+            answer = qp_tick_answer(v, buf.line, buf.box_l, buf.box_u, buf.C, buf.l, buf.u,
                                     self.qp.settings.feasibility_tol, flat, self.evaluate.offsets, qv, dq_meas, k,
                                     self.config.dt, self.config.joint_damping, residual, bits)
         ok = answer is not None and answer[0] == LINE_ANSWER_OK
@@ -398,9 +397,8 @@ class Controller:
             second = self.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
             dq_cmd, _, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
             bits |= FLAG_QP_FAILED
-            q_des = qv + self.config.dt * dq_cmd
-            _, _, J, _, _, _, _, _, _, A, gravity = state_views(flat, self.evaluate.offsets)
-            tau = qp_torque(A, gravity, J, dq_cmd, dq_meas, k, self.config.dt, self.config.joint_damping)
+            q_des, tau = qp_command(flat, self.evaluate.offsets, qv, dq_cmd, dq_meas, k, self.config.dt,
+                                    self.config.joint_damping)
         t2 = time.perf_counter()
         return Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, _status(bits),
                        t2 - t1 - t_interval, t2 - t0, (e_pos, e_rot), message)
@@ -409,7 +407,7 @@ class Controller:
         """:func:`qpnso.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""
         return qp_tick(qv, flat, self.evaluate.offsets, self._limits, self.ref_rotation, self.ref_position, twist,
                        self._elbow_memory, self.ns0, self._elbow_params, advance, self._gains, self._qp_tol,
-                       *self._line.outputs())
+                       self._line.identity, *self._line.outputs())
 
     # ------------------------------------------------------------- helpers
     def _check_input(self, qv: np.ndarray) -> Status:
@@ -448,12 +446,12 @@ class Controller:
         straight elbow) drops the elbow constraints for the tick.
         """
         memory = self._elbow_memory
-        if state.wrist_sin < _WRIST_SIN_MIN or state.elbow_offset < ELBOW_OFFSET_MIN_M:
+        params = self._elbow_params
+        if arm_angle_singular(state.wrist_sin, state.elbow_offset, params):
             ns = float(memory[NS])
             k = float(stiffness(ns, self.ns0, self.elbow_config))
             return ElbowState(ns, (ns, ns), (ns - np.pi, ns + np.pi), k, Status.ELBOW_DROPPED, dropped=True)
-        params = self._elbow_params
-        ns, recompute = elbow_advance(state.arm_angle, state.pose, memory, params[8], params[9])
+        ns, recompute = elbow_advance(state.arm_angle, state.pose, memory, params[P_PERIOD], params[P_MOVED_TOL])
         stale = self._update_interval(state.q, state.pose) if recompute else False
         lo, hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, self.ns0, params)
         bits = (FLAG_INTERVAL_STALE if stale else 0) | (FLAG_ROM_EMPTY if empty else 0)

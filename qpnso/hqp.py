@@ -838,6 +838,18 @@ class _Raw:
     message: str = ""
 
 
+@dataclass(slots=True)
+class _ProxEntry:
+    """A persistent ProxSuite object with its members held by reference (each access through the
+    binding costs a call), and whether its next solve must start cold (the last one failed)."""
+
+    qp: object
+    settings: object
+    results: object
+    info: object
+    cold_next: bool = False
+
+
 class _ProxSuiteBackend:
     """ProxSuite dense ProxQP, one persistent object per (level, shape), warm-started."""
 
@@ -847,7 +859,7 @@ class _ProxSuiteBackend:
         self._px = proxsuite.proxqp
         self._settings = settings
         self._stats = stats
-        self._qps: dict[tuple, list] = {}  # key -> [QP object, solve cold next time]
+        self._qps: dict[tuple, _ProxEntry] = {}  # (level, nv, rows, box) -> its persistent object
         out = self._px.QPSolverOutput
         self._status = {
             out.PROXQP_SOLVED: LevelStatus.SOLVED,
@@ -895,13 +907,13 @@ class _ProxSuiteBackend:
             obj = self._create(H.shape[0], C.shape[0], box)
             obj.settings.initial_guess = self._cold
             obj.init(**data)
-            self._qps[key] = entry = [obj, False, obj.settings, obj.results, obj.results.info]  # members, by reference
+            self._qps[key] = entry = _ProxEntry(obj, obj.settings, obj.results, obj.results.info)
         else:
-            obj = entry[0]
-            entry[2].initial_guess = self._cold if entry[1] else self._warm
+            obj = entry.qp
+            entry.settings.initial_guess = self._cold if entry.cold_next else self._warm
             obj.update(**data)
         obj.solve()
-        settings, results, info = entry[2], entry[3], entry[4]
+        settings, results, info = entry.settings, entry.results, entry.info
         out = info.status
         if out is not self._solved:
             if settings.initial_guess == self._warm:
@@ -911,7 +923,7 @@ class _ProxSuiteBackend:
                 obj.solve()
                 out = info.status
         status = LevelStatus.SOLVED if out is self._solved else self._status.get(out, LevelStatus.SOLVER_ERROR)
-        entry[1] = status is not LevelStatus.SOLVED  # a failed result is a bad warm start
+        entry.cold_next = status is not LevelStatus.SOLVED  # a failed result is a bad warm start
         message = self._messages.get(out)
         if message is None:
             message = self._messages[out] = f"proxsuite {out.name}"
@@ -1072,8 +1084,9 @@ class HierarchicalQP:
         if raw.status is not LevelStatus.SOLVED:
             return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
         code = LINE_ANSWER_NOT_FINITE
-        if raw.v is not None and raw.v.shape == box_l.shape:
-            code, x, worst, slack = checked_line_answer(raw.v, direction, x0, box_l, box_u, C, l, u, n_slack,
+        v = solved_vector(raw, box_l.shape)
+        if v is not None:
+            code, x, worst, slack = checked_line_answer(v, direction, x0, box_l, box_u, C, l, u, n_slack,
                                                         self.settings.feasibility_tol)
         if code == LINE_ANSWER_NOT_FINITE:
             return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
@@ -1142,6 +1155,14 @@ class HierarchicalQP:
         x = qp.x_prev + d
         return LevelResult(LevelStatus.SOLVED, x=x, residual=_residual(level, x), slack=slack,
                            iterations=raw.iterations, message=raw.message)
+
+
+def solved_vector(raw: _Raw, shape: tuple[int, ...]) -> np.ndarray | None:
+    """A back end's solution vector if it reports success with a vector of ``shape``, else None
+    (what is left to check is the vector's values)."""
+    if raw.status is not LevelStatus.SOLVED or raw.v is None or raw.v.shape != shape:
+        return None
+    return raw.v
 
 
 def level_failure(k: int, n_levels: int, result: LevelResult) -> str:

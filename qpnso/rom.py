@@ -142,20 +142,18 @@ def clipped_bounds(ns0: float, half_width: float, lo: float, hi: float, full_cir
 def stiffness(ns: float | np.ndarray, ns0: float, cfg: ElbowConfig) -> float | np.ndarray:
     """Elbow stiffness (N·m/rad), double symmetric sigmoid [E 6]:
     ``K = (Kmax − Kmin)/(1 + exp(α (d − |ns − ns0|))) + Kmin``."""
-    if isinstance(ns, float):  # the per-tick path: plain floats
-        return sigmoid_stiffness(ns, ns0, cfg.stiffness_min, cfg.stiffness_max, cfg.alpha_per_rad, cfg.d_rad)
-    span = cfg.stiffness_max - cfg.stiffness_min
-    x = cfg.alpha_per_rad * (cfg.d_rad - np.abs(np.asarray(ns, dtype=float) - ns0))
-    k = span * 0.5 * (1.0 - np.tanh(0.5 * x)) + cfg.stiffness_min
-    return float(k) if np.ndim(k) == 0 else k
+    value = ns if isinstance(ns, float) else np.asarray(ns, dtype=float)
+    if np.ndim(value) == 0:
+        value = float(value)
+    return sigmoid_stiffness(value, float(ns0), cfg.stiffness_min, cfg.stiffness_max, cfg.alpha_per_rad, cfg.d_rad)
 
 
 @njit(cache=True)
-def sigmoid_stiffness(ns: float, ns0: float, k_min: float, k_max: float, alpha: float, d: float) -> float:
-    """:func:`stiffness` of one arm angle (rad) from plain parameters (N·m/rad, 1/rad, rad): the
-    per-tick kernel.  ``1/(1 + eˣ) = ½(1 − tanh(x/2))``, which cannot overflow."""
-    x = alpha * (d - abs(ns - ns0))
-    return (k_max - k_min) * 0.5 * (1.0 - math.tanh(0.5 * x)) + k_min
+def sigmoid_stiffness(ns, ns0, k_min, k_max, alpha, d):  # type: ignore[no-untyped-def]
+    """:func:`stiffness` of an arm angle or an array of them (rad) from plain parameters (N·m/rad,
+    1/rad, rad): the per-tick kernel.  ``1/(1 + eˣ) = ½(1 − tanh(x/2))``, which cannot overflow."""
+    x = alpha * (d - np.abs(ns - ns0))
+    return (k_max - k_min) * 0.5 * (1.0 - np.tanh(0.5 * x)) + k_min
 
 
 def setpoint(ns: float, rom_t: ClippedRom | tuple[float, float]) -> float:

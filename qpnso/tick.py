@@ -186,13 +186,24 @@ def store_interval(memory: np.ndarray, lo: float, hi: float, full_circle: bool, 
     memory[IV_POSE:] = pose
 
 
+P_HALF_WIDTH, P_MARGIN, P_K_MIN, P_K_MAX, P_ALPHA, P_D, P_WRIST_SIN_MIN, P_OFFSET_MIN, P_PERIOD, P_MOVED_TOL = range(10)
+"""Indices of :func:`elbow_parameters`."""
+
+
 def elbow_parameters(half_width: float, margin: float, k_min: float, k_max: float, alpha: float, d: float,
                      wrist_sin_min: float, elbow_offset_min: float, period: int) -> np.ndarray:
-    """The elbow kernels' constants in one array: ROM half width Δns and safety margin d_sg (rad),
-    stiffness K_min, K_max (N·m/rad), α (1/rad), d (rad) [E 6], the singularity thresholds (sine, m),
-    the interval's update period (ticks) and :data:`TOOL_MOVED_TOL`."""
+    """The elbow kernels' constants in one array (indices ``P_*``): ROM half width Δns and safety
+    margin d_sg (rad), stiffness K_min, K_max (N·m/rad), α (1/rad), d (rad) [E 6], the singularity
+    thresholds (sine, m), the interval's update period (ticks) and :data:`TOOL_MOVED_TOL`."""
     return np.array([half_width, margin, k_min, k_max, alpha, d, wrist_sin_min, elbow_offset_min, period,
                      TOOL_MOVED_TOL])
+
+
+@njit(cache=True)
+def arm_angle_singular(wrist_sin, elbow_offset, params):  # type: ignore[no-untyped-def]
+    """Whether the arm angle is undefined this tick (wrist near the vertical through the shoulder,
+    or a straight elbow): the elbow constraints are dropped."""
+    return wrist_sin < params[P_WRIST_SIN_MIN] or elbow_offset < params[P_OFFSET_MIN]
 
 
 @njit(cache=True)
@@ -221,15 +232,17 @@ def elbow_bounds(ns, memory, ns0, params):  # type: ignore[no-untyped-def]
     else:
         k = round((ns - 0.5 * (memory[IV_LO] + memory[IV_HI])) / TWO_PI)
         lo, hi = memory[IV_LO] + TWO_PI * k, memory[IV_HI] + TWO_PI * k
-    rom_lo, rom_hi, empty = clipped_bounds(ns0, params[0], lo, hi, full, params[1])
-    return rom_lo, rom_hi, empty, lo, hi, sigmoid_stiffness(ns, ns0, params[2], params[3], params[4], params[5])
+    rom_lo, rom_hi, empty = clipped_bounds(ns0, params[P_HALF_WIDTH], lo, hi, full, params[P_MARGIN])
+    k = sigmoid_stiffness(ns, ns0, params[P_K_MIN], params[P_K_MAX], params[P_ALPHA], params[P_D])
+    return rom_lo, rom_hi, empty, lo, hi, k
 
 
 class LineTickBuffers:
     """The arrays :func:`qp_tick` writes, allocated once per controller (nothing is boxed
     per tick): ``step`` the cost step's filter state (rad/s, read and advanced), ``line`` (3, n)
     the rows ``x0``, ``d``, ``x1`` (rad/s), and the level-2 line QP ``H, g, C, l, u, box_l, box_u``
-    (``v = [t; σ]``, one soft elbow row) in the shapes of :func:`qpnso.hqp.line_qp_arrays`."""
+    (``v = [t; σ]``, one soft elbow row) in the shapes of :func:`qpnso.hqp.line_qp_arrays`; and,
+    read only, ``identity`` the Hessian of level 2's ``½‖q̇‖²``."""
 
     def __init__(self, step: np.ndarray) -> None:
         n = step.shape[0]
@@ -239,6 +252,7 @@ class LineTickBuffers:
         self.H, self.g = np.zeros((2, 2)), np.zeros(2)
         self.C, self.l, self.u = np.zeros((1, 2)), np.zeros(1), np.zeros(1)
         self.box_l, self.box_u = np.zeros(2), np.zeros(2)
+        self.identity = np.eye(n)
 
     def outputs(self) -> tuple:
         return self.step, self.line, self.H, self.g, self.C, self.l, self.u, self.box_l, self.box_u
@@ -253,7 +267,15 @@ def qp_torque(A, gravity, J, dq_cmd, dq_meas, stiffness, dt, damping):  # type: 
 
 
 @njit(cache=True)
-def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, advance, gains, qp_tol,
+def qp_command(flat, offsets, q, dq, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
+    """The ``qp`` strategy's command for the velocity ``dq`` (rad/s): ``(q_des = q + dt·dq`` rad,
+    ``τ`` N·m of :func:`qp_torque`), with A(q), g(q) and J from the stacked state ``flat``."""
+    _, _, J, _, _, _, _, _, _, A, gravity = state_views(flat, offsets)
+    return q + dt * dq, qp_torque(A, gravity, J, dq, dq_meas, stiffness, dt, damping)
+
+
+@njit(cache=True)
+def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, advance, gains, qp_tol, identity,
             step, line, H, g, C, l, u, box_l, box_u):  # type: ignore[no-untyped-def]
     """The ``qp`` strategy's tick up to its level-2 QP, in one call: the compiled tick (module doc).
 
@@ -262,7 +284,8 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     dq_max (rad/s); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
     ROM centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
     ``gains`` = (pose gain K_p 1/s, joint-limit gain 1/s, cost gain, null-space speed max rad/s, filter α,
-    elbow gain 1/s, slack scale 1/√(2ρ)); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ).
+    elbow gain 1/s, slack scale 1/√(2ρ)); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ);
+    ``identity`` (n, n) level 2's Hessian.
 
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`), the arm angle's singularity
     (:data:`TICK_ELBOW_DROPPED`), the elbow (:func:`elbow_advance`, :func:`elbow_bounds`), level 1's
@@ -280,10 +303,10 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
         return (TICK_NOT_FINITE,) + nothing[1:]
     n = q.shape[0]
     R, p, J, cost, cost_gradient, ns_wrapped, ns_gradient, wrist_sin, elbow_offset, _, _ = state_views(flat, offsets)
-    if wrist_sin < elbow[6] or elbow_offset < elbow[7]:
+    if arm_angle_singular(wrist_sin, elbow_offset, elbow):
         return (TICK_ELBOW_DROPPED,) + nothing[1:]
     if advance:
-        _, recompute = elbow_advance(ns_wrapped, flat[:12], memory, elbow[8], elbow[9])
+        _, recompute = elbow_advance(ns_wrapped, flat[:12], memory, elbow[P_PERIOD], elbow[P_MOVED_TOL])
         if recompute:
             return (TICK_NEED_INTERVAL,) + nothing[1:]
     ns = memory[NS]
@@ -305,7 +328,7 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     step[:] = low_pass(step, cost_step(J, cost_gradient, gains[2], gains[3]), gains[4])  # level 2
     lo, hi = elbow_row_bounds(ns, rom_lo, rom_hi, gains[5])
     H[:], g[:], C[:], l[:], u[:], box_l[:], box_u[:], _ = line_qp_arrays(
-        d, x0, t_lo, t_hi, np.zeros((0, n)), np.zeros(0), np.eye(n), step, ns_gradient.reshape(1, n).copy(), lo, hi,
+        d, x0, t_lo, t_hi, np.zeros((0, n)), np.zeros(0), identity, step, ns_gradient.reshape(1, n), lo, hi,
         1, gains[6], reg, rank_tol, damping)
     line[0], line[1], line[2] = x0, d, x1
     return LINE_OK, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, math.sqrt(dot(r, r)), cost, bits
@@ -321,6 +344,5 @@ def qp_tick_answer(v, line, box_l, box_u, C, l, u, feasibility_tol, flat, offset
     code, x, _, slack = checked_line_answer(v, line[1], line[0], box_l, box_u, C, l, u, 1, feasibility_tol)
     if code != LINE_ANSWER_OK:
         return code, x, x, x, bits
-    _, _, J, _, _, _, _, _, _, A, gravity = state_views(flat, offsets)
-    tau = qp_torque(A, gravity, J, x, dq_meas, stiffness, dt, damping)
-    return code, x, q + dt * x, tau, bits | answer_bits(residual, slack.max())
+    q_des, tau = qp_command(flat, offsets, q, x, dq_meas, stiffness, dt, damping)
+    return code, x, q_des, tau, bits | answer_bits(residual, slack.max())

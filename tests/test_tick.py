@@ -320,6 +320,17 @@ def test_nan_q_is_refused_before_anything_advances(robot) -> None:
     assert np.array_equal(fast.ref_position, ref)
 
 
+def test_mis_shaped_level_two_answer_holds_the_tool(robot, monkeypatch) -> None:
+    fast, slow = pair(robot)
+    for ctrl in (fast, slow):
+        ctrl.reset(Q0)
+        monkeypatch.setattr(ctrl.qp._backend, "solve_arrays",
+                            lambda *args: _Raw(np.zeros(3), LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED"))
+    a, b = fast.step(Q0), slow.step(Q0)
+    assert a.status & Status.QP_FAILED and "mis-shaped" in a.message and "tool held" in a.message
+    assert_same(a, b)
+
+
 def test_compiled_tick_with_a_qpsolvers_back_end_equals_the_general_path(robot, monkeypatch) -> None:
     """The compiled tick hands its line QP to any back end (here DAQP, exact active set)."""
     fast, slow = pair(robot, qp_backend="daqp")
@@ -342,7 +353,7 @@ def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     from qpnso import rom, state
 
-    kernels = [tick.qp_tick, tick.qp_tick_answer, tick.limits_status, tick.max_abs_difference,
+    kernels = [tick.qp_tick, tick.qp_tick_answer, tick.qp_command, tick.arm_angle_singular, tick.limits_status, tick.max_abs_difference,
                tick.elbow_advance, tick.elbow_bounds, state.state_views, rom.clipped_bounds, linalg.least_norm_line,
                hqp.task_line, hqp.least_norm_point, hqp.checked_line_answer]
     before = [len(k.signatures) for k in kernels]

@@ -27,6 +27,8 @@ import numpy as np
 from qpnso.codegen import FastFunction
 from qpnso.errors import InputError
 from qpnso.robot import Robot, as_vector
+from qpnso.settings import check, out_of_range
+from qpnso.settings import from_dict as settings_from_dict
 from qpnso.symbolic import SymbolicModel
 
 TERMS = ("mass", "inertia", "friction_force", "friction_torque")
@@ -46,10 +48,16 @@ class CostWeights:
     friction_torque: float = 0.0
 
     def __post_init__(self) -> None:
+        """Types first (finite numbers, :func:`qpnso.settings.check`), then each weight >= 0."""
+        check(self)
         for f in fields(self):
-            value = getattr(self, f.name)
-            if not np.isfinite(value) or value < 0:
-                raise InputError(f"cost weight {f.name} must be finite and >= 0, got {value}")
+            if getattr(self, f.name) < 0:
+                raise out_of_range(self, f.name, "cost weight must be >= 0")
+
+    @classmethod
+    def from_dict(cls, values: dict, where: str = "") -> "CostWeights":
+        """Build from plain data (a ``[weights]`` table); unknown keys are listed with the valid ones."""
+        return settings_from_dict(cls, values, where)
 
     def as_array(self) -> np.ndarray:
         """Weights in the order of :data:`TERMS`."""

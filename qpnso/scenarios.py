@@ -9,7 +9,7 @@ run's metrics.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 from qpnso.errors import ConfigError
 from qpnso.robot import Robot, load_robot
+from qpnso.settings import SettingError, check, from_dict, out_of_range
 from qpnso.trajectory import Trajectory, guidance_path
 
 if TYPE_CHECKING:
@@ -64,6 +65,68 @@ class Scenario:
         return guidance_path(self.tool_pose(), size=self.path_size, speed=self.path_speed, dt=dt)
 
 
+@dataclass(frozen=True)
+class ScenarioTable:
+    """``[scenario]`` of a scenario file."""
+
+    name: str
+    description: str = ""
+    robot: str = "lwr4p"
+
+    def __post_init__(self) -> None:
+        check(self)
+
+
+@dataclass(frozen=True)
+class StartTable:
+    """``[start]``: the tool pose at the path centre (m, degrees, world frame), the start arm angle and branch."""
+
+    center: tuple[float, float, float]
+    rpy_deg: tuple[float, float, float]
+    ns0_deg: float
+    branch: tuple[int, int, int]  # signs of joints 2, 4, 6
+
+    def __post_init__(self) -> None:
+        check(self)
+        if any(s not in (1, -1) for s in self.branch):
+            raise out_of_range(self, "branch", "must be three signs, each 1 or -1")
+
+
+@dataclass(frozen=True)
+class PathTable:
+    """``[path]``: the guidance path (lemniscates) around the centre pose."""
+
+    kind: str = "guidance"
+    size: float = 0.08  # m, tip to tip
+    speed: float = 0.05  # m/s, peak tool speed
+
+    def __post_init__(self) -> None:
+        check(self)
+        if self.kind != "guidance":
+            raise out_of_range(self, "kind", "must be 'guidance'")
+        for name in ("size", "speed"):
+            if getattr(self, name) <= 0:
+                raise out_of_range(self, name, "must be > 0")
+
+
+@dataclass(frozen=True)
+class ScenarioFile:
+    """A scenario file's tables, type-checked by :func:`qpnso.settings.from_dict`
+    (``controller`` holds :class:`qpnso.controller.ControllerConfig` settings)."""
+
+    scenario: ScenarioTable
+    start: StartTable
+    path: PathTable = field(default_factory=PathTable)
+    controller: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check(self)
+
+
+SCENARIO_TABLES = tuple(f.name for f in fields(ScenarioFile))
+"""The top-level tables of a scenario file."""
+
+
 def scenario_path(name_or_path: str | Path) -> Path:
     """``"A"``/``"B"`` (shipped) or a TOML file path."""
     p = Path(name_or_path)
@@ -76,25 +139,23 @@ def scenario_path(name_or_path: str | Path) -> Path:
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Read a scenario file; a missing or unknown key is named in the error."""
+    """Read a scenario file (tables :class:`ScenarioFile`); a missing, unknown or wrongly
+    typed key, or a value out of range, is a :class:`ConfigError` naming the file and the key."""
+    from qpnso.controller import ControllerConfig
+
     p = scenario_path(name_or_path)
     try:
         data = tomllib.loads(p.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    f = from_dict(ScenarioFile, data, str(p))
     try:
-        sc, start, path = data["scenario"], data["start"], data.get("path", {})
-        if path.get("kind", "guidance") != "guidance":
-            raise ConfigError(f"{p}: [path] kind must be 'guidance'")
-        return Scenario(
-            name=str(sc["name"]), description=str(sc.get("description", "")), robot=str(sc.get("robot", "lwr4p")),
-            center=tuple(float(x) for x in start["center"]), rpy_deg=tuple(float(x) for x in start["rpy_deg"]),
-            ns0_deg=float(start["ns0_deg"]), branch=tuple(int(x) for x in start["branch"]),
-            path_size=float(path.get("size", 0.08)), path_speed=float(path.get("speed", 0.05)),
-            controller=dict(data.get("controller", {})),
-        )
-    except KeyError as exc:
-        raise ConfigError(f"{p}: missing key {exc.args[0]!r}") from None
+        ControllerConfig.from_dict(f.controller)
+    except SettingError as exc:
+        raise exc.within("controller", str(p)) from None
+    return Scenario(name=f.scenario.name, description=f.scenario.description, robot=f.scenario.robot,
+                    center=f.start.center, rpy_deg=f.start.rpy_deg, ns0_deg=f.start.ns0_deg, branch=f.start.branch,
+                    path_size=f.path.size, path_speed=f.path.speed, controller=dict(f.controller))
 
 
 def run_scenario(name: str, strategy: str, seed: int = 0, duration_scale: float = 1.0,

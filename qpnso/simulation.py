@@ -22,7 +22,9 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.controller import Controller
-from qpnso.errors import InputError, QpnsoError
+from qpnso.errors import QpnsoError
+from qpnso.settings import check, out_of_range
+from qpnso.settings import from_dict as settings_from_dict
 from qpnso.solve import Recorder, RunResult
 from qpnso.trajectory import Trajectory
 
@@ -40,6 +42,18 @@ class HandModel:
     rotational_stiffness: float = 30.0  # N·m/rad
     rotational_damping: float = 3.0  # N·m·s/rad
 
+    def __post_init__(self) -> None:
+        """Types first (finite numbers, :func:`qpnso.settings.check`), then each gain >= 0."""
+        check(self)
+        for name in ("stiffness", "damping", "rotational_stiffness", "rotational_damping"):
+            if getattr(self, name) < 0:
+                raise out_of_range(self, name, "must be >= 0")
+
+    @classmethod
+    def from_dict(cls, values: dict, where: str = "") -> "HandModel":
+        """Build from plain data (a ``[hand]`` table); unknown keys are listed with the valid ones."""
+        return settings_from_dict(cls, values, where)
+
     def wrench(self, ref: tuple, tool: tuple) -> np.ndarray:
         """Force (N) and moment (N·m) on the tool, world frame.
 
@@ -54,15 +68,24 @@ class HandModel:
 
 @dataclass
 class SimulationConfig:
+    """Settings of the hands-on simulation; ``hand`` may be given as a dict."""
+
     substeps: int = 2  # integration steps per control tick
     hand: HandModel = field(default_factory=HandModel)
     armature: float = 0.1  # kg·m², reflected rotor inertia added to each joint
 
     def __post_init__(self) -> None:
+        """Types first (:func:`qpnso.settings.check`), then ranges."""
+        check(self)
         if self.substeps < 1:
-            raise InputError("substeps must be >= 1")
+            raise out_of_range(self, "substeps", "must be >= 1")
         if self.armature < 0:
-            raise InputError("armature must be >= 0 kg·m²")
+            raise out_of_range(self, "armature", "must be >= 0 kg·m²")
+
+    @classmethod
+    def from_dict(cls, values: dict, where: str = "") -> "SimulationConfig":
+        """Build from plain data (``hand`` as a table); unknown keys are listed with the valid ones."""
+        return settings_from_dict(cls, values, where)
 
 
 def simulate(controller: Controller, path: Trajectory, q0: np.ndarray,

@@ -6,6 +6,13 @@ elbow stays in its range of motion, clipped to the arm-angle interval the joint
 limits allow.  See METHOD.md for the equations each module implements.
 """
 
+__version__ = "0.1.0"
+
+# First: Numba picks a kernel's cache folder when the kernel is decorated (module import).
+from qpnso import compiled_cache as _compiled_cache  # noqa: E402
+
+_compiled_cache.begin_keyed_numba_cache(__version__)
+
 from qpnso.controller import STRATEGIES, Command, Controller, ControllerConfig, Status
 from qpnso.costs import TERMS, CostModel, CostWeights, DirectionalCost
 from qpnso.elbow import (
@@ -40,7 +47,7 @@ from qpnso.robot import JointFriction, Robot, load_robot
 from qpnso.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
 from qpnso.symbolic import SymbolicModel
 
-__version__ = "0.1.0"
+_compiled_cache.end_keyed_numba_cache()  # last: other code's Numba kernels keep the user's setting
 
 __all__ = [
     "STRATEGIES",

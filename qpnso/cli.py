@@ -2,7 +2,10 @@
 
 Every sub-command is a small function ``cmd_<name>(args) -> int`` registered in
 ``build_parser``.  Errors that qpnso raises on purpose (bad robot, bad file,
-bad angle...) are printed as one line, ``qpnso: error: ...``, exit status 2.
+bad angle, bad flag value...) are printed as one line, ``qpnso: error: ...``,
+exit status 2.  A run that completes but fails its check (``qpnso solve``: the
+tool left the trajectory by more than the tolerance) writes its results, prints
+one line ``qpnso: failed: ...`` and exits with status 1.
 """
 
 from __future__ import annotations
@@ -55,11 +58,28 @@ def add_q_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--q-deg", default=None, help="joint configuration in DEGREES, comma-separated")
 
 
-def load_cli_robot(args: argparse.Namespace):
+def load_cli_robot(args: argparse.Namespace, redundant: bool = False):
+    """The robot of ``--robot``/``--tool-frame``/``--tool-offset``; with ``redundant``,
+    refused unless it is a 7-DOF arm (the commands that move the elbow)."""
     from qpnso.robot import load_robot
 
     offset = parse_vector(args.tool_offset, 3, "--tool-offset") if args.tool_offset else None
-    return load_robot(args.robot, tool_frame=args.tool_frame, tool_offset=offset)
+    robot = load_robot(args.robot, tool_frame=args.tool_frame, tool_offset=offset)
+    if redundant:
+        robot.require_redundant_arm()
+    return robot
+
+
+def have_matplotlib() -> bool:
+    """Whether the optional ``plot`` extra (matplotlib) can be imported."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+NO_MATPLOTLIB = "matplotlib is not installed (pip install 'qpnso[plot]')"
 
 
 # ---------------------------------------------------------------------- info
@@ -106,7 +126,11 @@ def cmd_intervals(args: argparse.Namespace) -> int:
     from qpnso.plots import plot_intervals
     from qpnso.rom import ElbowConfig
 
-    robot = load_cli_robot(args)
+    if not have_matplotlib():
+        from qpnso.errors import InputError
+
+        raise InputError(f"qpnso intervals draws a figure and needs {NO_MATPLOTLIB}")
+    robot = load_cli_robot(args, redundant=True)
     q = robot_q(args, robot)
     rom = ElbowConfig(half_width_deg=args.rom_half_width_deg, safety_margin_deg=args.safety_margin_deg)
     iv = continuity_interval(robot, q)
@@ -190,25 +214,61 @@ def controller_overrides(args: argparse.Namespace) -> dict:
     return {"strategy": getattr(args, "strategy", None), "dt": getattr(args, "dt", None)}
 
 
+def positive(value: float, flag: str) -> float:
+    """``value`` if it is a positive finite number, else an error naming ``flag``."""
+    from qpnso.errors import InputError
+
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f"{flag} must be a positive number, got {value:g}")
+    return float(value)
+
+
+def print_notes(messages: list[str], limit: int = 10) -> None:
+    for message in messages[:limit]:
+        print(f"  note: {message}")
+    if len(messages) > limit:
+        print(f"  ... and {len(messages) - limit} more notes")
+
+
+def print_slow_ticks(summary: dict, dt: float) -> None:
+    """One line when some ticks took longer than the control period."""
+    slow = int(summary.get("slow_ticks", 0))
+    if slow:
+        print(f"  note: {slow} of {int(summary['ticks'])} ticks ({100 * slow / summary['ticks']:.1f} %) took longer "
+              f"than the {1000 * dt:g} ms control period; the longest took {summary['tick_time_max_ms']:.4g} ms")
+
+
 def cmd_solve(args: argparse.Namespace) -> int:
-    """Offline solve of a tool trajectory, tick by tick: the main job."""
+    """Offline solve of a tool trajectory, tick by tick: the main job.
+
+    Exit status 0 when the tool stayed within the tolerance of the trajectory,
+    1 when it did not (the result and summary are written all the same), 2 for
+    bad input."""
     from qpnso.solve import load_config, solve_trajectory
     from qpnso.trajectory import read_csv
 
-    robot = load_cli_robot(args)
+    tol_m = positive(args.tool_tolerance_mm, "--tool-tolerance-mm") / 1000.0
+    tol_rad = np.radians(positive(args.tool_tolerance_deg, "--tool-tolerance-deg"))
+    robot = load_cli_robot(args, redundant=True)
     traj = read_csv(args.trajectory)
     cfg = load_config(args.config, controller_overrides(args))
     q0 = None
     if args.q0 is not None:
         q0 = robot.check_q(parse_vector(args.q0, robot.nq, "--q0"), "--q0")
-    result = solve_trajectory(robot, traj, q0=q0, config=cfg, progress=progress_bar(not args.quiet, "solve"))
+    result = solve_trajectory(robot, traj, q0=q0, config=cfg, progress=progress_bar(not args.quiet, "solve"),
+                              tool_tolerance_m=tol_m, tool_tolerance_rad=float(tol_rad))
     result.save(args.out)
     if args.summary:
         write_json(args.summary, {"robot": robot.name, "strategy": cfg.strategy, "trajectory": str(args.trajectory),
                                   **result.summary})
     print_summary(result.summary, f"{robot.name}, strategy {cfg.strategy}, {args.trajectory} -> {args.out}")
-    for message in result.messages[:10]:
-        print(f"  note: {message}")
+    print_notes(result.messages)
+    print_slow_ticks(result.summary, cfg.dt)
+    if not result.ok:
+        sys.stdout.flush()
+        written = args.out + (f" and {args.summary}" if args.summary else "")
+        print(f"qpnso: failed: {args.trajectory}: {result.failure}; results written to {written}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -222,32 +282,50 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     sc = load_scenario(args.scenario)
     settings = config_values(args.config, controller_overrides(args))
+    plot = not args.no_plot and have_matplotlib()  # checked first: say so before a long run, not after
+    if not args.no_plot and not plot:
+        print(f"qpnso: note: {NO_MATPLOTLIB}: run.png will be skipped (result.npz and summary.json are written)",
+              file=sys.stderr)
     result = simulate_scenario(args.scenario, None, args.duration_scale,
                                progress_bar(not args.quiet, "simulate"), settings)
     strategy = settings.get("strategy", sc.controller.get("strategy", "qp"))
     out = Path(args.out)
     result.save(out / "result.npz")
     write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": strategy, **result.summary})
-    if not args.no_plot:
+    if plot:
         plot_run(result.arrays, out / "run.png", title=f"scenario {sc.name}, strategy {strategy}")
     print_summary(result.summary, f"scenario {sc.name} ({sc.description}), strategy {strategy} -> {out}")
+    print_slow_ticks(result.summary, float(settings.get("dt", sc.controller.get("dt", 1e-3))))
+    if not args.no_plot and not plot:
+        print(f"qpnso: note: figure {out / 'run.png'} skipped: {NO_MATPLOTLIB}", file=sys.stderr)
     return 0
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
     """Plot a result.npz (arm angle, ROM_t, bounds, stiffness, felt mass/friction, tool path)."""
+    import zipfile
+    from pathlib import Path
+
     from qpnso.errors import InputError
     from qpnso.plots import plot_run
 
+    path = Path(args.result)
+    if not path.is_file():
+        raise InputError(f"result file not found: {path}")
+    not_result = f"{path} is not a qpnso result .npz (the --out file of qpnso solve or simulate)"
+    if not zipfile.is_zipfile(path):  # a CSV, a .npy, ...: np.load would talk about pickled data
+        raise InputError(f"{not_result}: it is not a NumPy .npz archive")
     try:
-        with np.load(args.result) as data:
+        with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read {args.result}: {exc}") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{not_result}: cannot read it ({exc})") from None
     missing = [k for k in ("t", "ns", "rom_lo", "rom_hi", "interval_lo", "interval_hi", "stiffness", "mass",
                            "friction_force", "tool_position") if k not in arrays]
     if missing:
-        raise InputError(f"{args.result} lacks {missing}: not a qpnso result file")
+        raise InputError(f"{not_result}: it lacks {missing}")
+    if not have_matplotlib():
+        raise InputError(f"qpnso plot needs {NO_MATPLOTLIB}")
     print(f"figure written to {plot_run(arrays, args.out, title=str(args.result))}")
     return 0
 
@@ -266,6 +344,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if unknown:
         raise ConfigError(f"unknown strategy {unknown}; choose from {STRATEGIES}")
     sc = load_scenario(args.scenario)
+    plot = have_matplotlib()
+    if not plot:
+        print(f"qpnso: note: {NO_MATPLOTLIB}: comparison.png will be skipped", file=sys.stderr)
     runs, rows = {}, []
     for name in strategies:
         result = simulate_scenario(args.scenario, name, args.duration_scale, progress_bar(not args.quiet, name))
@@ -275,8 +356,11 @@ def cmd_compare(args: argparse.Namespace) -> int:
     table = comparison_table(rows, sc)
     out.mkdir(parents=True, exist_ok=True)
     (out / "comparison.md").write_text(table + "\n")
-    plot_comparison(runs, out / "comparison.png", title=f"scenario {sc.name}: {sc.description}")
+    if plot:
+        plot_comparison(runs, out / "comparison.png", title=f"scenario {sc.name}: {sc.description}")
     print(table)
+    if not plot:
+        print(f"qpnso: note: figure {out / 'comparison.png'} skipped: {NO_MATPLOTLIB}", file=sys.stderr)
     return 0
 
 
@@ -333,7 +417,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         report = run_solver_benchmark(Path(args.out), quick=args.quick, progress=None if args.quiet else print)
         print(report.read_text())
         return 0
-    robot = load_cli_robot(args)
+    robot = load_cli_robot(args, redundant=args.what != "cost")
     if args.what == "cost":
         rows = benchmark.bench_cost(robot, n=args.n)
         title = f"cost.value + cost.gradient, {robot.name}, mass + friction force"
@@ -388,6 +472,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dt", type=float, default=None, help="tick length, s (default 0.001)")
     p.add_argument("--out", default="result.npz", help="per-tick arrays (NumPy .npz)")
     p.add_argument("--summary", default=None, help="also write the summary as JSON")
+    p.add_argument("--tool-tolerance-mm", type=float, default=1.0,
+                   help="the run fails (exit status 1) if the tool ever leaves the path by more (default 1 mm)")
+    p.add_argument("--tool-tolerance-deg", type=float, default=1.0,
+                   help="same for the tool's orientation error, DEGREES (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=cmd_solve)
 
@@ -443,12 +531,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     handler: Handler = args.handler
     try:
         return handler(args)
-    except argparse.ArgumentTypeError as exc:
-        parser.error(str(exc))
-    except QpnsoError as exc:
+    except (argparse.ArgumentTypeError, QpnsoError) as exc:  # a bad flag value (named) or refused input
         print(f"qpnso: error: {exc}", file=sys.stderr)
         return 2
-    return 0
 
 
 if __name__ == "__main__":

@@ -178,7 +178,7 @@ def timing_summary(seconds) -> dict[str, float]:
 
 
 def summarize_run(arrays: Mapping[str, np.ndarray],
-                  status_flags: Mapping[str, int] | None = None) -> dict[str, float]:
+                  status_flags: Mapping[str, int] | None = None, dt: float | None = None) -> dict[str, float]:
     """Flat dict of the run metrics from per-tick arrays (e.g. ``RunResult.arrays``).
 
     Uses whichever of these keys are present (names of ``qpnso.solve.RESULT_KEYS``
@@ -197,6 +197,8 @@ def summarize_run(arrays: Mapping[str, np.ndarray],
     ``status_not_ok_fraction``, ``status_<NAME>_ticks`` for each entry of
     ``status_flags`` (name → bit value, e.g. ``{f.name: f.value for f in Status}``),
     ``tick_time_{median,p95,p99,max}_us``, ``solve_time_{...}_us``,
+    ``slow_ticks`` (ticks whose ``tick_time`` exceeds the control period ``dt``,
+    s; without ``dt``, the median spacing of ``t``) and ``tick_time_max_ms``,
     ``user_work_per_metre_N`` [M 24].
     """
     if "t" not in arrays:
@@ -234,6 +236,14 @@ def summarize_run(arrays: Mapping[str, np.ndarray],
     for key in ("tick_time", "solve_time"):
         if has(key):
             out.update({f"{key}_{k}": v for k, v in timing_summary(arrays[key]).items()})
+    if has("tick_time"):
+        period = float(dt) if dt is not None else (float(np.median(np.diff(t))) if len(t) >= 2 else None)
+        if period is not None:
+            if not (np.isfinite(period) and period > 0):
+                raise InputError(f"dt must be a positive number of seconds, got {period}")
+            ticks = np.ravel(np.asarray(arrays["tick_time"], dtype=float))
+            out["slow_ticks"] = float(np.count_nonzero(ticks > period))
+        out["tick_time_max_ms"] = out["tick_time_max_us"] / 1000.0
     if has("hand_wrench", "tool_twist", "tool_position") and out.get("path_length_m", 0) > 0:
         out["user_work_per_metre_N"] = user_work_per_metre(arrays["hand_wrench"], arrays["tool_twist"], t,
                                                            arrays["tool_position"])

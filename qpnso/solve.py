@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import os
 import tempfile
+from bisect import bisect_right
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
 from qpnso.controller import Controller, ControllerConfig
-from qpnso.errors import ConfigError, QpnsoError, UnreachableError
+from qpnso.errors import ConfigError, InputError, QpnsoError, UnreachableError
 from qpnso.robot import Robot
 from qpnso.trajectory import Trajectory
 
@@ -33,11 +35,23 @@ RESULT_KEYS = ("t", "q", "dq", "ns", "rom_lo", "rom_hi", "interval_lo", "interva
 
 @dataclass
 class RunResult:
-    """Arrays over ticks of one run (rad, m, s, kg, N; world frame) and its summary."""
+    """Arrays over ticks of one run (rad, m, s, kg, N; world frame) and its summary.
+
+    ``failure`` is empty unless the run finished but failed its check (for
+    :func:`solve_trajectory`: the tool left the trajectory by more than the
+    tolerance); it is then one line saying where and by how much, and
+    ``summary["result"]`` is ``"failed"``.
+    """
 
     arrays: dict[str, np.ndarray]
-    summary: dict[str, float] = field(default_factory=dict)
+    summary: dict[str, Any] = field(default_factory=dict)
     messages: list[str] = field(default_factory=list)
+    failure: str = ""
+
+    @property
+    def ok(self) -> bool:
+        """True unless the run failed its check (see ``failure``)."""
+        return not self.failure
 
     def save(self, path: str | Path) -> Path:
         """Write ``result.npz`` atomically (temporary file, then rename)."""
@@ -45,12 +59,17 @@ class RunResult:
 
 
 def atomic_write(path: Path, write) -> Path:
-    """Call ``write(file)`` on a temporary file beside ``path``, then rename it into place."""
+    """Call ``write(file)`` on a temporary file beside ``path``, then rename it into place.
+
+    The file gets the mode a plain ``open(path, "w")`` would give it: an existing
+    file's mode, else 0666 minus the umask (``mkstemp`` alone would leave 0600).
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
+        os.chmod(tmp, _new_file_mode(path))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -58,26 +77,86 @@ def atomic_write(path: Path, write) -> Path:
     return path
 
 
+def _new_file_mode(path: Path) -> int:
+    """The permission bits ``open(path, "w")`` would leave: the existing file's, else 0666 & ~umask."""
+    try:
+        st = path.stat()
+    except OSError:
+        return 0o666 & ~_umask()
+    import stat
+
+    return stat.S_IMODE(st.st_mode) if stat.S_ISREG(st.st_mode) else 0o666 & ~_umask()
+
+
+def _umask() -> int:
+    """The process umask, read without changing it where Linux shows it (thread-safe)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o077)  # elsewhere: set and restore (a restrictive value while it is swapped)
+    os.umask(mask)
+    return mask
+
+
 def config_values(path: str | Path | None, overrides: dict | None = None) -> dict:
     """Controller settings as plain data: a TOML file (top level or ``[controller]``),
-    then ``overrides`` (CLI flags; None values are not given)."""
+    then ``overrides`` (CLI flags; None values are not given).
+
+    The file's keys and value types are checked here, the error naming the file and
+    the key.  Beside a ``[controller]`` table the top level may hold only the other
+    tables of a scenario file (``[scenario]``, ``[start]``, ``[path]``: a scenario file
+    is a valid config file); a setting there, or given both at the top level and under
+    ``[controller]``, is an error rather than silently dropped.
+    """
+    from qpnso.scenarios import SCENARIO_TABLES
+    from qpnso.settings import SettingError, check_table, show
+
     values: dict = {}
     if path is not None:
         p = Path(path)
         if not p.is_file():
             raise ConfigError(f"config file not found: {p}")
         try:
-            values = tomllib.loads(p.read_text())
+            data = tomllib.loads(p.read_text())
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-        values = dict(values.get("controller", values))
+        values = data
+        if "controller" in data:
+            values = data["controller"]
+            if not isinstance(values, dict):
+                raise SettingError(str(p), "controller", f"expected a table of ControllerConfig settings, "
+                                   f"got {type(values).__name__}", show(values))
+            tables = sorted(SCENARIO_TABLES)
+            for key in data:
+                if key in values and key != "controller":
+                    raise SettingError(str(p), key, "given both at the top level and under [controller]; keep one")
+                if key not in tables:
+                    raise SettingError(str(p), key, f"not allowed at the top level beside a [controller] table "
+                                       f"(top-level tables: {', '.join(tables)}); controller settings go under "
+                                       f"[controller]")
+        values = dict(values)
+        check_table(ControllerConfig, values, str(p))
     values.update({k: v for k, v in (overrides or {}).items() if v is not None})
     return values
 
 
 def load_config(path: str | Path | None, overrides: dict | None = None) -> ControllerConfig:
-    """A :class:`ControllerConfig` from a TOML file, then ``overrides`` (CLI flags)."""
-    return ControllerConfig.from_dict(config_values(path, overrides))
+    """A :class:`ControllerConfig` from a TOML file, then ``overrides`` (CLI flags); an
+    error about a setting the file gave names the file and the key."""
+    from qpnso.settings import SettingError
+
+    values = config_values(path, overrides)
+    flags = {k for k, v in (overrides or {}).items() if v is not None}
+    try:
+        return ControllerConfig.from_dict(values)
+    except SettingError as exc:
+        if path is None or exc.key.split(".")[0] in flags:
+            raise
+        raise exc.within(where=str(path)) from None
 
 
 def initial_configuration(robot: Robot, pose: pin.SE3, arm_angle: float = 0.0,
@@ -168,19 +247,41 @@ class Recorder:
         from qpnso.metrics import summarize_run
 
         arrays = {k: np.asarray(v) for k, v in self.rec.items()}
-        summary = summarize_run(arrays, {f.name: f.value for f in Status if f.value})
+        summary = summarize_run(arrays, {f.name: f.value for f in Status if f.value}, dt=self.ctrl.config.dt)
         summary.update(feel_summary(arrays))
         return RunResult(arrays, summary, self.messages)
 
 
+TOOL_TOLERANCE_M = 1e-3
+"""Default tool position tolerance of :func:`solve_trajectory` (m)."""
+TOOL_TOLERANCE_RAD = float(np.radians(1.0))
+"""Default tool rotation tolerance of :func:`solve_trajectory` (rad)."""
+
+
 def solve_trajectory(robot: Robot, traj: Trajectory, q0: np.ndarray | None = None,
-                     config: ControllerConfig | None = None, progress=None) -> RunResult:
+                     config: ControllerConfig | None = None, progress=None,
+                     tool_tolerance_m: float = TOOL_TOLERANCE_M,
+                     tool_tolerance_rad: float = TOOL_TOLERANCE_RAD) -> RunResult:
     """Run the controller along ``traj`` at ``config.dt``; the per-tick arrays and summary.
 
     ``q0`` (rad) must put the tool on the first pose (within 1 mm); without it,
-    :func:`initial_configuration` finds one with the elbow up.
+    :func:`initial_configuration` finds one with the elbow up.  The robot must be
+    a 7-DOF arm (:meth:`Robot.require_redundant_arm`).
+
+    The run always completes; afterwards, if the tool ever left the reference by
+    more than ``tool_tolerance_m`` (m) or ``tool_tolerance_rad`` (rad), the
+    summary's ``result`` is ``"failed"`` and ``RunResult.failure`` says at which
+    tick and which trajectory sample (:func:`tool_error_check`); else ``"ok"``.
     """
     cfg = config or ControllerConfig()
+    robot.require_redundant_arm()
+    for name, value in (("tool_tolerance_m", tool_tolerance_m), ("tool_tolerance_rad", tool_tolerance_rad)):
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            v = float("nan")
+        if not (np.isfinite(v) and v > 0):
+            raise InputError(f"{name} must be a positive finite number, got {value!s}")
     ctrl = Controller(robot, cfg)
     first = traj.pose(traj.t[0])
     q = initial_configuration(robot, first) if q0 is None else robot.check_q(q0, "q0")
@@ -199,7 +300,65 @@ def solve_trajectory(robot: Robot, traj: Trajectory, q0: np.ndarray | None = Non
         q = q + cfg.dt * cmd.dq
         if progress is not None:
             progress(k + 1, n)
-    return recorder.result()
+    result = recorder.result()
+    verdict, result.failure = tool_error_check(result.arrays, traj.t, tool_tolerance_m, tool_tolerance_rad)
+    result.summary.update(verdict)
+    return result
+
+
+def data_row(row_times: np.ndarray, t: float) -> int:
+    """The 1-based data row of a trajectory (CSV rows counted from 1 after the header)
+    that is the last one at or before time ``t`` (s): the sample the tick at ``t``
+    interpolates from.  0 if ``t`` is before the first row."""
+    times = [float(x) for x in np.asarray(row_times, dtype=float)]
+    return bisect_right(times, float(t) + 1e-9)  # 1e-9 s: t0 + k·dt round-off
+
+
+def tool_error_check(arrays: dict[str, np.ndarray], row_times: np.ndarray,
+                     tolerance_m: float = TOOL_TOLERANCE_M,
+                     tolerance_rad: float = TOOL_TOLERANCE_RAD) -> tuple[dict[str, Any], str]:
+    """Did the tool stay on the trajectory?  ``(summary entries, failure line)``.
+
+    Compares the recorded ``tool_position_error`` (m) and ``tool_rotation_error``
+    (rad) of every tick with the tolerances.  The summary entries are ``result``
+    (``"ok"`` or ``"failed"``), ``tool_tolerance_m``, ``tool_tolerance_deg`` and,
+    on failure, ``first_failed_tick`` (0-based), ``first_failed_t_s`` (the tick's
+    time), ``first_failed_data_row`` (1-based data row of ``row_times`` — the CSV
+    row after the header — last at or before that time) with its time
+    ``first_failed_data_row_t_s``, the errors there and the largest errors with
+    their data rows.  The failure line is empty when the run is ok.
+    """
+    t = np.asarray(arrays["t"], dtype=float)
+    pos = np.asarray(arrays["tool_position_error"], dtype=float)
+    rot = np.asarray(arrays["tool_rotation_error"], dtype=float)
+    out: dict[str, Any] = {"result": "ok", "tool_tolerance_m": float(tolerance_m),
+                           "tool_tolerance_deg": float(np.degrees(tolerance_rad))}
+    bad = ~(pos <= tolerance_m) | ~(rot <= tolerance_rad)  # NaN counts as exceeded
+    if not bad.any():
+        return out, ""
+    k = int(np.flatnonzero(bad)[0])
+    row_times = np.asarray(row_times, dtype=float)
+    row = data_row(row_times, t[k])
+    worst_p = int(np.nanargmax(pos)) if np.isfinite(pos).any() else k
+    worst_r = int(np.nanargmax(rot)) if np.isfinite(rot).any() else k
+    out.update(result="failed", first_failed_tick=k, first_failed_t_s=float(f"{t[k]:.12g}"),
+               first_failed_data_row=row, first_failed_data_row_t_s=float(row_times[max(row, 1) - 1]),
+               first_failed_position_error_m=float(pos[k]), first_failed_rotation_error_deg=float(np.degrees(rot[k])),
+               worst_position_error_m=float(pos[worst_p]),
+               worst_position_error_data_row=data_row(row_times, t[worst_p]),
+               worst_rotation_error_deg=float(np.degrees(rot[worst_r])),
+               worst_rotation_error_data_row=data_row(row_times, t[worst_r]))
+    what = []
+    if not pos[k] <= tolerance_m:
+        what.append(f"position error {1000 * pos[k]:.3g} mm > {1000 * tolerance_m:g} mm")
+    if not rot[k] <= tolerance_rad:
+        what.append(f"rotation error {np.degrees(rot[k]):.3g} deg > {np.degrees(tolerance_rad):g} deg")
+    line = (f"the tool left the trajectory at data row {row} (t = {row_times[max(row, 1) - 1]:.6g} s; "
+            f"data rows count from 1 after the header), tick t = {t[k]:.6g} s: {' and '.join(what)}; "
+            f"largest position error {1000 * out['worst_position_error_m']:.4g} mm "
+            f"(data row {out['worst_position_error_data_row']}), rotation error "
+            f"{out['worst_rotation_error_deg']:.3g} deg (data row {out['worst_rotation_error_data_row']})")
+    return out, line
 
 
 def feel_summary(arrays: dict[str, np.ndarray]) -> dict[str, float]:

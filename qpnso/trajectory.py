@@ -171,8 +171,8 @@ def _validated(t, position, quaternion, row: str) -> tuple[np.ndarray, np.ndarra
     if bad.size:
         k = bad[0] + 1
         kind = "repeats" if t[k] == t[k - 1] else "is earlier than"
-        raise TrajectoryError(f"time must be strictly increasing: {row} {k + 1} (t={t[k]!r}) {kind} "
-                              f"{row} {k} (t={t[k - 1]!r})")
+        raise TrajectoryError(f"time must be strictly increasing: {row} {k + 1} (t={float(t[k])!r}) {kind} "
+                              f"{row} {k} (t={float(t[k - 1])!r})")  # float: no np.float64(...) in the text
     norms = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE)
     if bad.size:

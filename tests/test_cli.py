@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import re
+import sys
+
 import numpy as np
 import pytest
 
@@ -32,10 +36,9 @@ def test_info_errors_are_one_line(capsys, argv, message) -> None:
 
 
 def test_bad_vector_is_a_usage_error(capsys) -> None:
-    with pytest.raises(SystemExit) as exc:
-        main(["info", "--q", "0,0,nan,0,0,0,0"])
-    assert exc.value.code == 2
-    assert "NaN" in capsys.readouterr().err
+    assert main(["info", "--q", "0,0,nan,0,0,0,0"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("qpnso: error: --q contains NaN") and err.count("\n") == 1
 
 
 def test_intervals_writes_a_png(tmp_path, capsys) -> None:
@@ -115,7 +118,7 @@ def test_plot_rejects_a_foreign_file(tmp_path, capsys) -> None:
     bad = tmp_path / "x.npz"
     np.savez(bad, a=np.zeros(3))
     assert main(["plot", str(bad), "--out", str(tmp_path / "x.png")]) == 2
-    assert "not a qpnso result file" in capsys.readouterr().err
+    assert "is not a qpnso result .npz" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("what", ["cost", "interval", "tick"])
@@ -126,3 +129,146 @@ def test_bench_prints_median_and_p99(capsys, what) -> None:
     assert "| median µs | p99 µs |" in out
     rows = [line for line in out.splitlines() if line.startswith("| ") and "µs" not in line and "---" not in line]
     assert rows and all(float(r.split("|")[2]) > 0 for r in rows)
+
+
+# ------------------------------------------------------------------- issue 13, items 7 and 12
+ROW = "{t:.2f},{x:.6g},0,0.5,4.329780281e-17,0.9659258263,4.329780281e-17,0.2588190451\n"
+"""A held tool pose of examples/trajectories/hold_lwr4p.csv (rpy 180, 30, 180 deg), x in metres."""
+
+
+def jump_csv(path, rows: int = 121, jump_row: int = 100) -> list[float]:
+    """A 10 ms hold at x = 0.65 m whose x jumps by 2 m from data row ``jump_row`` (1-based) on."""
+    times = [0.01 * i for i in range(rows)]
+    path.write_text("t,x,y,z,qx,qy,qz,qw\n" + "".join(
+        ROW.format(t=t, x=0.65 + (2.0 if i + 1 >= jump_row else 0.0)) for i, t in enumerate(times)))
+    return times
+
+
+def test_solve_fails_when_the_tool_leaves_the_path(tmp_path, capsys) -> None:
+    """Item 7: a 2 m jump in x at data row 100 used to exit 0; now exit 1, naming the first row."""
+    csv = tmp_path / "jump.csv"
+    times = jump_csv(csv)
+    res, summary = tmp_path / "r.npz", tmp_path / "s.json"
+    assert main(["solve", str(csv), "--out", str(res), "--summary", str(summary), "--quiet",
+                 "--dt", "0.004"]) == 1
+    captured = capsys.readouterr()
+    line = captured.err.strip()
+    assert line.startswith("qpnso: failed:") and "\n" not in line and "Traceback" not in captured.err
+    data = json.loads(summary.read_text())  # the complete result is written all the same
+    assert data["result"] == "failed"
+    with np.load(res) as arrays:
+        t, pos, rot = arrays["t"], arrays["tool_position_error"], arrays["tool_rotation_error"]
+    assert len(t) == data["ticks"] == 301
+    # the first tick out of tolerance, found here independently, and the CSV row at or before it
+    k = int(np.flatnonzero((pos > 1e-3) | (rot > np.radians(1)))[0])
+    row = sum(1 for x in times if x <= t[k] + 1e-9)
+    assert data["first_failed_tick"] == k and data["first_failed_data_row"] == row
+    assert data["first_failed_data_row_t_s"] == pytest.approx(times[row - 1])
+    assert 90 <= row <= 100  # at the jump (the cubic spline starts moving a few rows early)
+    assert f"data row {row} " in line and "data rows count from 1 after the header" in line
+    assert data["tool_position_error_max_m"] > 1.0 and data["worst_position_error_m"] > 1.0
+    assert data["worst_position_error_data_row"] >= 100
+    assert data["slow_ticks"] >= 0 and data["tick_time_max_ms"] > 0
+    assert "result" in captured.out and "failed" in captured.out
+
+
+def test_solve_tool_tolerance_flags(tmp_path, capsys) -> None:
+    """A generous tolerance passes the same jump; a non-positive one is a one-line usage error."""
+    csv = tmp_path / "jump.csv"
+    jump_csv(csv, rows=41, jump_row=30)
+    summary = tmp_path / "s.json"
+    argv = ["solve", str(csv), "--out", str(tmp_path / "r.npz"), "--summary", str(summary), "--quiet",
+            "--dt", "0.005"]
+    assert main([*argv, "--tool-tolerance-mm", "5000", "--tool-tolerance-deg", "90"]) == 0
+    data = json.loads(summary.read_text())
+    assert data["result"] == "ok" and data["tool_tolerance_m"] == 5.0 and data["tool_tolerance_deg"] == 90.0
+    capsys.readouterr()
+    assert main([*argv, "--tool-tolerance-mm", "0"]) == 2
+    assert capsys.readouterr().err == "qpnso: error: --tool-tolerance-mm must be a positive number, got 0\n"
+
+
+def test_solve_ok_run_says_ok(tmp_path, capsys) -> None:
+    csv = tmp_path / "hold.csv"
+    main(["trajectory", "hold", "--center", "0.65,0,0.5", "--rpy-deg", "180,30,180", "--duration", "0.05",
+          "--out", str(csv)])
+    summary = tmp_path / "s.json"
+    assert main(["solve", str(csv), "--out", str(tmp_path / "r.npz"), "--summary", str(summary), "--quiet"]) == 0
+    data = json.loads(summary.read_text())
+    assert data["result"] == "ok" and "first_failed_data_row" not in data
+    assert isinstance(data["slow_ticks"], float) and data["tick_time_max_ms"] == pytest.approx(
+        data["tick_time_max_us"] / 1000)
+    assert "qpnso: failed" not in capsys.readouterr().err
+
+
+def test_bad_q0_is_one_line_naming_it(tmp_path, capsys) -> None:
+    """Item 12: a bad --q0 printed the top-level usage; now one line naming --q0."""
+    csv = tmp_path / "hold.csv"
+    main(["trajectory", "hold", "--center", "0.65,0,0.5", "--rpy-deg", "180,30,180", "--duration", "0.05",
+          "--out", str(csv)])
+    capsys.readouterr()
+    for q0, message in (("0,1,2", "--q0 needs 7 comma-separated numbers, got 3"),
+                        ("0,a,0,0,0,0,0", "--q0 must be comma-separated numbers")):
+        assert main(["solve", str(csv), "--q0", q0, "--out", str(tmp_path / "r.npz"), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"qpnso: error: {message}") and err.count("\n") == 1 and "usage" not in err
+    assert not (tmp_path / "r.npz").exists()
+
+
+def test_trajectory_error_shows_plain_numbers(tmp_path, capsys) -> None:
+    """Item 12: "t=np.float64(0.08)" in the repeated-time message; now "t=0.08"."""
+    csv = tmp_path / "rep.csv"
+    csv.write_text("t,x,y,z,qx,qy,qz,qw\n0,0.6,0,0.5,1,0,0,0\n0.08,0.6,0,0.5,1,0,0,0\n0.08,0.6,0,0.5,1,0,0,0\n")
+    assert main(["solve", str(csv), "--out", str(tmp_path / "r.npz"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "data row 3 (t=0.08) repeats data row 2 (t=0.08)" in err and "np." not in err
+
+
+def six_dof_urdf(tmp_path):
+    """The shipped LWR4+ without joint 7 and link 7 (the flange moved onto link 6): a 6-DOF arm."""
+    from qpnso.robot import MODELS_DIR
+
+    text = (MODELS_DIR / "lwr4p.urdf").read_text()
+    text = re.sub(r'\s*<joint name="joint_7".*?</joint>', "", text, flags=re.S)
+    text = re.sub(r'\s*<link name="link_7">.*?</link>', "", text, flags=re.S)
+    text = text.replace('<parent link="link_7"/>', '<parent link="link_6"/>')
+    path = tmp_path / "arm6.urdf"
+    path.write_text(text)
+    return path
+
+
+def test_six_dof_arm_is_refused_by_name(tmp_path, capsys) -> None:
+    """Item 12: a 6-DOF URDF gave "no configuration reaches the first pose"; now it names the 7-DOF need."""
+    urdf = six_dof_urdf(tmp_path)
+    assert main(["info", str(urdf)]) == 0  # describing the model is fine
+    assert "nq = 6" in capsys.readouterr().out
+    expected = "qpnso: error: qpnso needs a 7-DOF arm (one redundant degree of freedom for a 6-D tool task); " \
+               "arm6 has 6 joints\n"
+    for argv in (["solve", "examples/trajectories/hold_lwr4p.csv", "--robot", str(urdf),
+                  "--out", str(tmp_path / "r.npz"), "--quiet"],
+                 ["intervals", str(urdf), "--out", str(tmp_path / "iv.png")]):
+        assert main(argv) == 2
+        assert capsys.readouterr().err == expected
+    assert not (tmp_path / "r.npz").exists()
+
+
+def test_plot_says_a_csv_is_not_a_result(tmp_path, capsys) -> None:
+    """Item 12: "pickled (object) data" for a CSV; now "not a qpnso result .npz"."""
+    csv = tmp_path / "traj.csv"
+    jump_csv(csv, rows=3)
+    assert main(["plot", str(csv), "--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert "is not a qpnso result .npz" in err and "pickle" not in err and err.count("\n") == 1
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_simulate_without_matplotlib_says_the_figure_was_skipped(tmp_path, capsys, monkeypatch) -> None:
+    """Item 12: without matplotlib, simulate left no figure and no word; now it says so, and exits 0."""
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    out = tmp_path / "sim"
+    assert main(["simulate", "--scenario", "A", "--strategy", "damped", "--duration-scale", "0.003",
+                 "--out", str(out), "--quiet"]) == 0
+    assert {p.name for p in out.iterdir()} == {"result.npz", "summary.json"}
+    err = capsys.readouterr().err
+    assert "run.png skipped: matplotlib is not installed (pip install 'qpnso[plot]')" in err
+    data = json.loads((out / "summary.json").read_text())  # the simulate summary counts slow ticks too
+    assert "slow_ticks" in data and data["tick_time_max_ms"] > 0

@@ -132,3 +132,88 @@ def test_diverging_simulation_is_an_error_not_nan(monkeypatch) -> None:
     monkeypatch.setattr(sim, "_integrate", lambda *a: (np.full(7, np.nan), np.full(7, np.nan)))
     with pytest.raises(sim.SimulationError, match="diverged at t = 0.000 s"):
         simulate_scenario("A", "qp", duration_scale=0.01)
+
+
+# ------------------------------------------------------------------- issue 13, items 7 and 12
+def test_solve_summary_has_a_verdict_and_counts_slow_ticks(lwr, short_guidance) -> None:
+    result = solve_trajectory(lwr, short_guidance.window(0, 0.1))
+    s = result.summary
+    assert result.ok and result.failure == "" and s["result"] == "ok"
+    assert s["tool_tolerance_m"] == 1e-3 and s["tool_tolerance_deg"] == pytest.approx(1.0)
+    ticks = result.arrays["tick_time"]
+    assert s["slow_ticks"] == np.count_nonzero(ticks > 1e-3)
+    assert s["tick_time_max_ms"] == pytest.approx(1000 * ticks.max())
+    with pytest.raises(qpnso.InputError, match="tool_tolerance_m"):
+        solve_trajectory(lwr, short_guidance.window(0, 0.1), tool_tolerance_m=0.0)
+
+
+def test_summarize_run_counts_ticks_longer_than_the_period() -> None:
+    from qpnso.metrics import summarize_run
+
+    t = np.arange(5) * 1e-3
+    s = summarize_run({"t": t, "tick_time": np.array([1e-4, 2e-3, 1e-3, 5e-3, 9e-4])}, dt=1e-3)
+    assert s["slow_ticks"] == 2.0 and s["tick_time_max_ms"] == pytest.approx(5.0)
+    assert summarize_run({"t": 2 * t, "tick_time": np.full(5, 1.5e-3)})["slow_ticks"] == 0.0  # dt from t
+
+
+def test_tool_error_check_maps_ticks_to_csv_rows() -> None:
+    """Ticks every 1 ms from t0 = 0.5 s, rows every 10 ms: the row is the last one at or before the tick."""
+    from qpnso.solve import data_row, tool_error_check
+
+    rows = 0.5 + 0.01 * np.arange(11)
+    t = 0.5 + 1e-3 * np.arange(101)
+    pos, rot = np.full(101, 1e-4), np.zeros(101)
+    ok, line = tool_error_check({"t": t, "tool_position_error": pos, "tool_rotation_error": rot}, rows)
+    assert ok["result"] == "ok" and line == ""
+    pos[23], rot[60] = 2e-3, np.radians(3)  # 0.523 s: data row 3 (t = 0.52 s); 0.56 s: data row 7 exactly
+    out, line = tool_error_check({"t": t, "tool_position_error": pos, "tool_rotation_error": rot}, rows)
+    assert out["result"] == "failed" and out["first_failed_tick"] == 23
+    assert out["first_failed_data_row"] == 3 and out["first_failed_data_row_t_s"] == pytest.approx(0.52)
+    assert out["worst_position_error_m"] == 2e-3 and out["worst_position_error_data_row"] == 3
+    assert out["worst_rotation_error_deg"] == pytest.approx(3) and out["worst_rotation_error_data_row"] == 7
+    assert "data row 3 (t = 0.52 s" in line and "position error 2 mm > 1 mm" in line and "np." not in line
+    assert data_row(rows, 0.5 + 20 * 1e-3) == 3  # 0.52000000000000002 vs 0.52: round-off does not pick row 2
+    assert data_row(rows, rows[-1] + 1) == 11
+
+
+def test_six_dof_arm_is_refused_by_the_api(tmp_path) -> None:
+    import re
+
+    from qpnso.robot import MODELS_DIR
+
+    text = (MODELS_DIR / "lwr4p.urdf").read_text()
+    text = re.sub(r'\s*<joint name="joint_7".*?</joint>', "", text, flags=re.S)
+    text = re.sub(r'\s*<link name="link_7">.*?</link>', "", text, flags=re.S)
+    (tmp_path / "arm6.urdf").write_text(text.replace('<parent link="link_7"/>', '<parent link="link_6"/>'))
+    robot = qpnso.load_robot(tmp_path / "arm6.urdf")
+    assert robot.nq == 6
+    message = r"qpnso needs a 7-DOF arm \(one redundant degree of freedom for a 6-D tool task\); arm6 has 6 joints"
+    with pytest.raises(qpnso.ModelError, match=message):
+        robot.require_redundant_arm()
+    with pytest.raises(qpnso.ModelError, match=message):
+        solve_trajectory(robot, tr.hold(POSE, 0.05))
+    qpnso.load_robot("lwr4p").require_redundant_arm()  # a 7-DOF arm passes
+
+
+def test_results_honour_the_umask(tmp_path) -> None:
+    """Item 12: npz/json/png were written 0600 (mkstemp) while CSVs got 0644."""
+    import os
+    import stat
+
+    from qpnso.cli import write_json
+    from qpnso.solve import RunResult
+
+    old = os.umask(0o022)
+    try:
+        npz = RunResult({"t": np.zeros(2)}).save(tmp_path / "r.npz")
+        write_json(str(tmp_path / "s.json"), {"a": 1})
+        os.umask(0o027)
+        RunResult({"t": np.zeros(2)}).save(tmp_path / "g.npz")
+    finally:
+        os.umask(old)
+    mode = lambda p: stat.S_IMODE(p.stat().st_mode)  # noqa: E731
+    assert mode(npz) == 0o644 and mode(tmp_path / "s.json") == 0o644 and mode(tmp_path / "g.npz") == 0o640
+    os.chmod(npz, 0o600)  # an existing file keeps its mode, as with open(path, "w")
+    RunResult({"t": np.ones(2)}).save(npz)
+    assert mode(npz) == 0o600
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.npz", "r.npz", "s.json"]

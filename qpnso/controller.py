@@ -38,21 +38,26 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 import pinocchio as pin
 
+from qpnso.compiled_cache import announce_numba_if_cold
 from qpnso.costs import CostModel, CostWeights
-from qpnso.errors import ConfigError, QpnsoError
+from qpnso.errors import ConfigError, InputError, QpnsoError
 from qpnso.hqp import LINE_ANSWER_OK, HierarchicalQP, Level, QPSettings, level_failure, solved_vector
 from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.intervals import continuity_interval
 from qpnso.linalg import dynamically_consistent_projection
-from qpnso.robot import Robot, as_vector
+from qpnso.robot import Robot, as_vector, checked_pose, finite_scalar
 from qpnso.rom import ElbowConfig, stiffness
+from qpnso.settings import SettingError, check, out_of_range
+from qpnso.settings import from_dict as settings_from_dict
 from qpnso.state import StateEvaluator, TickState
-from qpnso.tick import (FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS,
-                         FLAG_QP_FAILED, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, LINE_OK, NS, P_MOVED_TOL, P_PERIOD,
-                         TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, LineTickBuffers, answer_bits,
-                         arm_angle_singular, elbow_advance, elbow_bounds, elbow_memory, elbow_parameters,
-                         limits_status, pose_error, qp_command, qp_tick, qp_tick_answer, store_interval,
-                         velocity_bounds)
+from qpnso.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
+                         FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED,
+                         FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, FLAG_TORQUE_SATURATED, LINE_OK, NS,
+                         P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE,
+                         TICK_STATE_NOT_FINITE, LineTickBuffers, answer_bits, arm_angle_singular, elbow_advance,
+                         elbow_bounds, elbow_memory, elbow_parameters, finish_command, limits_status, pose_correction,
+                         pose_error,
+                         qp_command, qp_tick, qp_tick_answer, store_interval, velocity_bounds)
 
 def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Status:
     """Flags of a solved tick: level 1's residual (``TOOL_LIMITED``) and the elbow rows' slack
@@ -73,6 +78,7 @@ def _norm(v: np.ndarray) -> float:
 
 _WRIST_SIN_MIN = float(np.sin(np.radians(WRIST_CONE_DEG)))
 _ELBOW_BITS = FLAG_INTERVAL_STALE | FLAG_ROM_EMPTY
+_NOT_OK_BITS = FLAG_QP_FAILED | FLAG_ELBOW_DROPPED | FLAG_INTERNAL_ERROR
 STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom")
 
 
@@ -87,6 +93,11 @@ class Status(enum.Flag):
     Q_OUT_OF_LIMITS = FLAG_Q_OUT_OF_LIMITS  # q outside its limits: velocity bounds push it back
     INTERVAL_STALE = FLAG_INTERVAL_STALE  # the continuity interval could not be updated
     TOOL_LIMITED = FLAG_TOOL_LIMITED  # level 1 residual not zero (bounds or singularity)
+    COST_UNDEFINED = FLAG_COST_UNDEFINED  # the cost or its gradient is not finite here: no cost step
+    TORQUE_SATURATED = FLAG_TORQUE_SATURATED  # τ clipped to the model's effort limits
+    QP_FALLBACK = FLAG_QP_FALLBACK  # ProxQP did not solve within its iteration budget: DAQP answered
+    ELBOW_OUTSIDE_ROM = FLAG_ELBOW_OUTSIDE_ROM  # the arm angle is outside ROM_t this tick
+    INTERNAL_ERROR = FLAG_INTERNAL_ERROR  # a tick could not be computed: joints stopped, τ = g(q)
 
 
 @dataclass
@@ -109,6 +120,8 @@ class ControllerConfig:
     stiffness_slope: float | None = None  # α (1/rad) of [E 6]; None: rom.py's default
     stiffness_inflection_deg: float | None = None  # d of [E 6]; None: rom.py's default
     pose_gain: float = 200.0  # 1/s, K_p of level 1
+    pose_correction_speed: float = 0.1  # m/s: the largest speed at which the tool point returns to its reference
+    pose_correction_angular_speed: float = 1.0  # rad/s: the same for the tool's orientation
     cost_gain: float = 10.0  # rad²/s per unit cost: level-2 step -gain·∇c
     nullspace_speed_max: float = 1.0  # rad/s, saturation of the cost step (as [M 21])
     cost_filter_time: float = 0.1  # s, low-pass of the cost step (0: none): no velocity steps
@@ -124,53 +137,51 @@ class ControllerConfig:
     gradient_omega_max: float = 10.0  # rad/s [M 21]
     elbow_up_angle_deg: float = 0.0  # arm angle the elbow-up strategy holds
     interval_period: int = 10  # ticks between interval updates while the tool moves
+    q_limit_tolerance_deg: float = 2.0  # deg (>= 0): how far outside its limits a measured joint
+    # may be and still be brought back (Status.Q_OUT_OF_LIMITS); beyond it the tick raises
+    recovery_speed: float = 0.2  # rad/s (> 0): the largest speed bringing a joint back inside its limits
+    dq_tolerance_factor: float = 5.0  # (>= 1): a measured dq beyond this multiple of the velocity limit raises
+    # (a hand can push a torque-controlled arm past its rated speed; deg/s for rad/s is 57×)
     qp_backend: str = "proxsuite"
     qp_settings: QPSettings = field(default_factory=QPSettings)
     compile: str | None = None  # CasADi evaluation: background|sync|off (codegen.py)
     compiled_tick: bool = True  # qp strategy: the tick as one Numba kernel when the line fast path applies (tick.py)
 
     def __post_init__(self) -> None:
+        """Types first (:func:`qpnso.settings.check`: ``weights``/``qp_settings`` may be dicts),
+        then ranges; a :class:`qpnso.settings.SettingError` names the key, value and range."""
+        check(self)
         if self.strategy not in STRATEGIES:
-            raise ConfigError(f"unknown strategy {self.strategy!r}; choose one of {STRATEGIES}")
-        if not (0 < self.dt <= 0.1):
-            raise ConfigError(f"dt must be in (0, 0.1] s, got {self.dt}")
+            raise SettingError(type(self).__name__, "strategy",
+                               f"unknown strategy {self.strategy!r}; choose one of {', '.join(STRATEGIES)}")
+        if not 0 < self.dt <= 0.1:
+            raise out_of_range(self, "dt", "must be in (0, 0.1] s")
         positive = ("pose_gain", "cost_gain", "nullspace_speed_max", "elbow_gain", "joint_limit_gain",
-                    "slack_weight", "posture_gain", "gradient_kd", "gradient_omega_max")
+                    "slack_weight", "posture_gain", "gradient_kd", "gradient_omega_max", "rom_half_width_deg",
+                    "recovery_speed", "pose_correction_speed", "pose_correction_angular_speed")
         for name in positive:
             if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+                raise out_of_range(self, name, "must be > 0")
         if self.joint_limit_gain * self.dt > 1.0:
-            raise ConfigError("joint_limit_gain·dt must be <= 1 (else a joint could cross its limit)")
-        if self.cost_filter_time < 0:
-            raise ConfigError("cost_filter_time must be >= 0 s")
-        if self.rom_half_width_deg <= 0 or self.safety_margin_deg < 0:
-            raise ConfigError("rom_half_width_deg must be > 0 and safety_margin_deg >= 0")
+            raise out_of_range(self, "joint_limit_gain",
+                               f"must be <= 1/dt = {1 / self.dt:g} 1/s (else a joint could cross its limit)")
+        for name in ("cost_filter_time", "safety_margin_deg", "q_limit_tolerance_deg"):
+            if getattr(self, name) < 0:
+                raise out_of_range(self, name, "must be >= 0")
         if self.interval_period < 1:
-            raise ConfigError("interval_period must be >= 1 tick")
-        if isinstance(self.weights, dict):
-            self.weights = CostWeights(**self.weights)
+            raise out_of_range(self, "interval_period", "must be >= 1 tick")
+        if self.dq_tolerance_factor < 1:
+            raise out_of_range(self, "dq_tolerance_factor", "must be >= 1")
 
     @classmethod
-    def from_dict(cls, values: dict) -> "ControllerConfig":
-        """Build from plain data (a TOML table); unknown keys are named in the error."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ConfigError(f"unknown controller setting(s) {unknown}; known: {sorted(known)}")
-        data = dict(values)
-        if isinstance(data.get("weights"), dict):
-            try:
-                data["weights"] = CostWeights(**data["weights"])
-            except TypeError as exc:
-                raise ConfigError(f"bad [weights] table: {exc}") from None
-        if isinstance(data.get("qp_settings"), dict):
-            try:
-                data["qp_settings"] = QPSettings(**data["qp_settings"])
-            except TypeError as exc:
-                raise ConfigError(f"bad [qp_settings] table: {exc}") from None
-        return cls(**data)
+    def from_dict(cls, values: dict, where: str = "") -> "ControllerConfig":
+        """Build from plain data (a TOML table; ``weights``/``qp_settings`` as tables): an unknown
+        key is named with the valid ones, a wrong type or range with key and value; errors name
+        ``where`` (e.g. the file; default: the class)."""
+        return settings_from_dict(cls, values, where)
 
     def to_dict(self) -> dict:
+        """Plain data (nested settings as dicts); ``from_dict(to_dict())`` gives an equal config."""
         return asdict(self)
 
     def elbow(self) -> ElbowConfig:
@@ -206,7 +217,10 @@ class Command:
 
     @property
     def ok(self) -> bool:
-        return not (self.status & (Status.QP_FAILED | Status.ELBOW_DROPPED))
+        return not (self.status & _NOT_OK)
+
+
+_NOT_OK = Status(_NOT_OK_BITS)
 
 
 @dataclass
@@ -227,6 +241,7 @@ class Controller:
     def __init__(self, robot: Robot, config: ControllerConfig | None = None) -> None:
         from qpnso.strategies import make_strategy
 
+        robot.require_redundant_arm()  # ModelError naming the arm, instead of ROM_EMPTY ticks
         self.robot = robot
         self.config = config or ControllerConfig()
         cfg = self.config
@@ -246,7 +261,13 @@ class Controller:
         self.compiled_tick = cfg.compiled_tick and self._can_compile
         self._gains = np.array([cfg.pose_gain, cfg.joint_limit_gain, cfg.cost_gain, cfg.nullspace_speed_max,
                                 self.strategy.filter_alpha if self._can_compile else 0.0, cfg.elbow_gain,
-                                1.0 / math.sqrt(2.0 * cfg.slack_weight)])
+                                1.0 / math.sqrt(2.0 * cfg.slack_weight), cfg.recovery_speed,
+                                cfg.pose_correction_speed, cfg.pose_correction_angular_speed])
+        tolerance = math.radians(cfg.q_limit_tolerance_deg)
+        self._q_accepted = (robot.q_min - tolerance, robot.q_max + tolerance)  # rad: beyond, InputError
+        self._dq_accepted = cfg.dq_tolerance_factor * robot.dq_max  # rad/s: beyond, InputError
+        limit = np.array(robot.tau_limit, dtype=float)
+        self._tau_limit = np.where(np.isfinite(limit) & (limit > 0), limit, 0.0)  # N·m; 0: none given
         st = self.qp.settings
         self._qp_tol = np.array([st.rank_tol, st.damping_threshold, st.regularization or 0.0])
         self._line = LineTickBuffers(self.strategy.filtered_step) if self._can_compile else None
@@ -271,6 +292,7 @@ class Controller:
         :mod:`qpnso.linalg`, :mod:`qpnso.hqp` and :mod:`qpnso.tick` compile (seconds, once per machine, then
         cached on disk) or load here, for the compiled tick and the general path alike, never in a
         control tick."""
+        announce_numba_if_cold()  # one line on stderr when the kernels compile now (empty cache)
         q = self.robot.sample_configuration()
         compiled = self.compiled_tick
         for path in {compiled, False}:
@@ -287,6 +309,8 @@ class Controller:
         ``ns0`` (rad) overrides the ROM centre.
         """
         q = self.robot.check_q(q0, "q0")
+        if ns0 is not None:
+            ns0 = finite_scalar(ns0, "ns0")
         state = self.evaluate(q)
         self.q0 = q
         self.ref_rotation = state.tool_rotation.copy()
@@ -294,6 +318,7 @@ class Controller:
         self.ns0 = float(state.arm_angle if ns0 is None else ns0)
         self._elbow_memory = elbow_memory(state.arm_angle)
         self._dq_prev = np.zeros(self.robot.nq)
+        self.qp.reset()  # warm starts and solver objects: a reset controller answers as a new one
         self.strategy.reset(q, state)
         self._reset_done = True
         self.step_count = 0
@@ -315,17 +340,73 @@ class Controller:
             raise QpnsoError("call Controller.reset(q0) before step()")
         qv = q if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape \
             and q.flags.c_contiguous and q.flags.writeable else as_vector(q, self.robot.nq, "q")
-        dq_meas = self._dq_prev if dq is None else as_vector(dq, self.robot.nq, "dq")
+        if limits_status(qv, self._q_accepted[0], self._q_accepted[1]):
+            self._refuse_q(qv)
+        dq_meas = self._dq_prev if dq is None else self._checked_dq(dq)
         twist = self._no_twist if tool_twist is None else as_vector(tool_twist, 6, "tool_twist")
         if tool_pose is not None:
-            self.ref_rotation, self.ref_position = tool_pose.rotation.copy(), tool_pose.translation.copy()
-        cmd = self._compiled(qv, twist, dq_meas, t0) if self.compiled_tick else None
-        if type(cmd) is not Command:
-            cmd = self._general(qv, twist, dq_meas, t0, cmd)
+            self.ref_rotation, self.ref_position = checked_pose(tool_pose, "tool_pose")
+        fallbacks = self.qp.stats.active_set_fallbacks
+        try:
+            cmd = self._compiled(qv, twist, dq_meas, t0) if self.compiled_tick else None
+            if type(cmd) is not Command:
+                cmd = self._general(qv, twist, dq_meas, t0, cmd)
+        except QpnsoError:
+            raise
+        except Exception as exc:  # a bug must not reach the robot as a traceback: stop, say why
+            cmd = self._stop(qv, self.robot.gravity(qv), FLAG_INTERNAL_ERROR, t0,
+                             f"internal error ({type(exc).__name__}: {exc}): joints stopped")
+        if self.qp.stats.active_set_fallbacks != fallbacks:
+            cmd.status |= Status.QP_FALLBACK
         if tool_twist is not None:
             self._advance_reference(twist, tool_pose is not None)
         self._dq_prev = cmd.dq
         self.step_count += 1
+        return cmd
+
+    def _refuse_q(self, qv: np.ndarray) -> None:
+        """Raise :class:`InputError` naming the first joint beyond its limits by more than
+        ``q_limit_tolerance_deg``, with its value and limits in degrees and radians (or NaN/inf)."""
+        as_vector(qv, self.robot.nq, "q")  # NaN or inf: raises, naming the entries
+        lo, hi = self._q_accepted
+        i = int(np.argmax((qv < lo) | (qv > hi)))
+        r = self.robot
+        raise InputError(
+            f"q[{i}] ({r.joint_names[i]}) = {math.degrees(qv[i]):.4g}° ({qv[i]:.6g} rad) is outside its limits "
+            f"[{math.degrees(r.q_min[i]):.4g}°, {math.degrees(r.q_max[i]):.4g}°] "
+            f"([{r.q_min[i]:.6g}, {r.q_max[i]:.6g}] rad) by more than {self.config.q_limit_tolerance_deg:g}°; "
+            f"q is in radians")
+
+    def _checked_dq(self, dq: object) -> np.ndarray:
+        """The measured ``dq`` (rad/s) as a vector; :class:`InputError` naming the first joint faster than
+        ``dq_tolerance_factor`` times its velocity limit."""
+        v = as_vector(dq, self.robot.nq, "dq")
+        over = np.abs(v) > self._dq_accepted
+        if over.any():
+            i = int(np.argmax(over))
+            raise InputError(f"dq[{i}] = {v[i]:.6g} rad/s is beyond {self.config.dq_tolerance_factor:g} × its "
+                             f"velocity limit {self.robot.dq_max[i]:.6g} rad/s; dq is in rad/s")
+        return v
+
+    def _stop(self, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float, message: str) -> Command:
+        """The stop command of a tick that could not be computed: dq 0, q_des = q, τ = g(q)."""
+        memory = self._elbow_memory
+        ns = float(memory[NS])
+        cmd = Command(np.zeros(self.robot.nq), qv.copy(), np.array(gravity, dtype=float), 0.0, ns, (ns, ns),
+                      (ns - math.pi, ns + math.pi), 0.0, Status.OK, 0.0, 0.0, (0.0, 0.0), message)
+        return self._finish(cmd, qv, cmd.tau, bits | FLAG_QP_FAILED, t0, True)
+
+    def _finish(self, cmd: Command, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float,
+                dropped: bool) -> Command:
+        """Every tick's last step (:func:`qpnso.tick.finish_command`): τ within the effort limits, an
+        arm angle outside ROM_t flagged, a non-finite command replaced by the stop command; the status
+        and the tick time set."""
+        bits |= finish_command(qv, cmd.dq, cmd.q_des, cmd.tau, gravity, self._tau_limit, cmd.arm_angle,
+                               cmd.rom[0], cmd.rom[1], dropped)
+        if bits & FLAG_INTERNAL_ERROR and not cmd.message:
+            cmd.message = "the command was not finite: joints stopped"
+        cmd.status = cmd.status | _status(bits) if bits else cmd.status
+        cmd.tick_time = time.perf_counter() - t0
         return cmd
 
     def _general(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float,
@@ -334,26 +415,32 @@ class Controller:
         ``started`` the ``(state, elbow, status)`` a compiled tick got to before the line fast path
         proved not to apply."""
         state, elbow, status = started or self._begin(qv)
+        if state.flags & FLAG_INTERNAL_ERROR:
+            return self._stop(qv, state.gravity, status.value | FLAG_INTERNAL_ERROR, t0,
+                              "the arm's state is not finite: joints stopped")
         error = self._pose_error(state)
         lb, ub = self._velocity_bounds(state.q)
-        level1 = Level(A=state.jacobian, b=twist + self.config.pose_gain * error)
+        level1 = Level(A=state.jacobian, b=twist + pose_correction(error, self._gains))
         level2 = self.strategy.level2(state, elbow)
         levels = [level1] if level2 is None else [level1, level2]
         result = self.qp.solve(levels, lb, ub, check=False)  # arrays built here; the answer is still checked
         dq_cmd, qp_status, message = self._command_velocity(result)
         tau = self._torque(state, dq_cmd, dq_meas, elbow)
-        return Command(
+        cmd = Command(
             dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
             arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost,
             status=status | qp_status if qp_status else status,
-            solve_time=result.solve_time, tick_time=time.perf_counter() - t0,
+            solve_time=result.solve_time, tick_time=0.0,
             tool_error=(_norm(error[:3]), _norm(error[3:])), message=message,
         )
+        return self._finish(cmd, qv, state.gravity, 0, t0, elbow.dropped)
 
     def _begin(self, qv: np.ndarray) -> tuple[TickState, ElbowState, Status]:
-        """The general tick's start: ``q`` checked, the state, the elbow."""
+        """The general tick's start: ``q`` checked, the state (made safe), the elbow."""
         status = self._check_input(qv)
         state = self.evaluate(qv)
+        if state.flags:
+            status |= _status(state.flags)
         elbow = self._elbow(state)
         return state, elbow, status | elbow.status if elbow.status else status
 
@@ -375,8 +462,8 @@ class Controller:
         code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits = tick
         if code == TICK_NOT_FINITE:
             as_vector(qv, self.robot.nq, "q")  # raises, naming the entries
-        if code == TICK_ELBOW_DROPPED:
-            return None
+        if code == TICK_ELBOW_DROPPED or code == TICK_STATE_NOT_FINITE:
+            return None  # the general path drops the elbow, or stops the joints
         if stale:
             bits |= FLAG_INTERVAL_STALE
         if code != LINE_OK:
@@ -395,13 +482,14 @@ class Controller:
             message = ""
         else:
             second = self.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
-            dq_cmd, _, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
-            bits |= FLAG_QP_FAILED
+            dq_cmd, fallback, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
+            bits |= fallback.value
             q_des, tau = qp_command(flat, self.evaluate.offsets, qv, dq_cmd, dq_meas, k, self.config.dt,
                                     self.config.joint_damping)
         t2 = time.perf_counter()
-        return Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, _status(bits),
-                       t2 - t1 - t_interval, t2 - t0, (e_pos, e_rot), message)
+        cmd = Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, Status.OK,
+                      t2 - t1 - t_interval, 0.0, (e_pos, e_rot), message)
+        return self._finish(cmd, qv, flat[self.evaluate.offsets[9]:], bits, t0, False)
 
     def _qp_tick(self, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool) -> tuple:
         """:func:`qpnso.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""
@@ -436,7 +524,7 @@ class Controller:
         """Joint velocity limits and a position damper (:func:`qpnso.tick.velocity_bounds`): q never
         crosses its limits; outside a limit the same rows push back at rate ``joint_limit_gain``."""
         r = self.robot
-        return velocity_bounds(q, r.q_min, r.q_max, r.dq_max, self.config.joint_limit_gain)
+        return velocity_bounds(q, r.q_min, r.q_max, r.dq_max, self.config.joint_limit_gain, self.config.recovery_speed)
 
     def _elbow(self, state: TickState) -> ElbowState:
         """Arm angle (unwrapped), continuity interval, ROM_t [E 10], [E 11] and K(ns) [E 6]
@@ -475,7 +563,8 @@ class Controller:
 
     def _fallback(self, why: str, x: np.ndarray | None) -> tuple[np.ndarray, Status, str]:
         """The safe command after a failed QP (``why`` as :attr:`HQPResult.status` words it): the
-        level-1 answer ``x`` (tool held, no null-space motion) if finite, else zero (joints stopped)."""
+        level-1 answer ``x`` (tool held, no null-space motion: the least-norm point of level 1's
+        optimal set, :meth:`HierarchicalQP.solve`) if finite, else zero (joints stopped)."""
         if x is None or not np.all(np.isfinite(x)):
             return np.zeros(self.robot.nq), Status.QP_FAILED, f"QP failed ({why}): joints stopped"
         return x, Status.QP_FAILED, f"QP failed ({why}): tool held, no null-space motion"

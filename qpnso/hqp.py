@@ -96,6 +96,7 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Sequence
 
+import daqp
 import numpy as np
 from numba import njit
 from scipy.linalg import lapack as _lapack
@@ -135,7 +136,9 @@ class QPSettings:
     eps_rel: float = 0.0
     eps_primal_inf: float = 1e-12
     eps_dual_inf: float = 1e-12
-    max_iter: int = 1000
+    max_iter: int = 10  # ProxQP's outer iterations per attempt (a tick's QP needs 2–13 in all, measured)
+    max_iter_in: int = 10  # ProxQP's inner iterations per outer one: an attempt is at most ~110 iterations
+    max_iter_active_set: int = 1000  # DAQP's iterations in the fallback (a tick's QP needs 2–10, measured)
     mu_in: float = 1e-3  # ProxQP default_mu_in: its 0.1 took 3.5 warm iterations per controller tick, 1e-3 took 2.2
     warm_start: bool = True  # ProxSuite: WARM_START_WITH_PREVIOUS_RESULT every tick
     box_constraints: bool = True  # ProxSuite: bounds as its native box (else as rows)
@@ -147,20 +150,30 @@ class QPSettings:
     feasibility_tol: float = 1e-6  # accepted violation of bounds / hard rows (units of the row)
     active_tol: float = 1e-7  # a higher level's bound/row this close to its answer is active below
     line_fast_path: bool = True  # a full-rank (n−1)-row first task: its exact solutions form a line (module doc)
+    active_set_fallback: bool = True  # a failed ProxQP solve is handed to DAQP (active set, exact)
     solver_options: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.regularization is not None and not (np.isfinite(self.regularization) and self.regularization >= 0):
-            raise ConfigError(f"QPSettings.regularization must be >= 0 or None, got {self.regularization!r}")
+        """Types first (:func:`qpnso.settings.check`), then ranges."""
+        from qpnso.settings import check, out_of_range
+
+        check(self)
+        if self.regularization is not None and self.regularization < 0:
+            raise out_of_range(self, "regularization", "must be >= 0 or None")
         for name in ("eps_abs", "eps_rel", "eps_primal_inf", "eps_dual_inf", "mu_in",
                      "rank_tol", "damping_threshold", "gradient_tol", "feasibility_tol", "active_tol"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
-                raise ConfigError(f"QPSettings.{name} must be a finite number >= 0, got {value!r}")
-        if not (isinstance(self.max_iter, int) and self.max_iter > 0):
-            raise ConfigError(f"QPSettings.max_iter must be a positive integer, got {self.max_iter!r}")
-        if not isinstance(self.solver_options, dict):
-            raise ConfigError("QPSettings.solver_options must be a dict")
+            if getattr(self, name) < 0:
+                raise out_of_range(self, name, "must be >= 0")
+        for name in ("max_iter", "max_iter_in", "max_iter_active_set"):
+            if getattr(self, name) <= 0:
+                raise out_of_range(self, name, "must be > 0")
+
+    @classmethod
+    def from_dict(cls, values: dict, where: str = "") -> "QPSettings":
+        """Build from plain data (a ``[qp_settings]`` table); unknown keys are listed with the valid ones."""
+        from qpnso.settings import from_dict
+
+        return from_dict(cls, values, where)
 
 
 # -------------------------------------------------------------------- levels
@@ -237,7 +250,7 @@ def _check_interval(lo: np.ndarray, hi: np.ndarray, lo_name: str, hi_name: str) 
                 raise InputError(f"{name} contains NaN")
         bad = ~(lo <= hi) | np.isposinf(lo) | np.isneginf(hi)
         i = int(np.argmax(bad))
-        raise InputError(f"{lo_name}[{i}] = {lo[i]!r} > {hi_name}[{i}] = {hi[i]!r}, or an infinite bound "
+        raise InputError(f"{lo_name}[{i}] = {float(lo[i])!r} > {hi_name}[{i}] = {float(hi[i])!r}, or an infinite bound "
                          f"on the wrong side")
 
 
@@ -821,12 +834,14 @@ class HQPResult:
 class HQPStats:
     """Counters across ticks: ``qp_created`` QP objects allocated (ProxSuite),
     ``solves`` calls of :meth:`HierarchicalQP.solve`, ``failures`` not ok,
-    ``cold_retries`` failed warm-started ProxSuite solves retried cold."""
+    ``cold_retries`` failed warm-started ProxSuite solves retried cold, ``active_set_fallbacks``
+    ProxSuite failures handed to DAQP (:func:`active_set_solve`)."""
 
     qp_created: int = 0
     solves: int = 0
     failures: int = 0
     cold_retries: int = 0
+    active_set_fallbacks: int = 0
 
 
 # ------------------------------------------------------------------ backends
@@ -836,6 +851,46 @@ class _Raw:
     status: LevelStatus
     iterations: int | None
     message: str = ""
+
+
+@njit(cache=True)
+def qp_data_finite(H, g, C, lo, hi, box_l, box_u):  # type: ignore[no-untyped-def]
+    """Whether a QP's data can be solved: ``H``, ``g``, ``C`` finite, no NaN in the bounds (±inf allowed)."""
+    for a in (H.ravel(), g, C.ravel()):
+        for x in a:
+            if not math.isfinite(x):
+                return False
+    for a in (lo, hi, box_l, box_u):
+        for x in a:
+            if x != x:
+                return False
+    return True
+
+
+_DAQP_SOLVED = (1, 2)  # DAQP's exit flags: optimal, optimal with soft constraints
+
+
+def active_set_solve(H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                     box_l: np.ndarray | None, box_u: np.ndarray | None, iter_limit: int = 1000) -> _Raw:
+    """``min ½vᵀHv + gᵀv`` s.t. ``lo ≤ C v ≤ hi`` (and the box) by DAQP, a dual active-set method:
+    finite termination, exact to round-off on the small QPs of a tick (about 20 µs, measured), a
+    semi-definite ``H`` handled by proximal-point iterations (``eps_prox=1e-6``, to ``eta_prox=1e-12``:
+    its automatic choice stalled for 5000 iterations along a flat direction that a bound cut, and its
+    default 1e-6 tolerance left level 1's residual at 7e-8, both measured).  The recovery of
+    :class:`_ProxSuiteBackend` when ProxQP fails (QP-NOTES: ProxQP can stall on degenerate problems)."""
+    if box_l is not None:
+        upper, lower = np.concatenate([box_u, hi]), np.concatenate([box_l, lo])
+    else:
+        upper, lower = hi, lo
+    try:
+        x, _, flag, info = daqp.solve(np.ascontiguousarray(H), g, np.ascontiguousarray(C), upper, lower,
+                                      eps_prox=1e-6, eta_prox=1e-12, iter_limit=iter_limit)
+    except Exception as exc:  # its own failure becomes a level status
+        return _Raw(None, LevelStatus.SOLVER_ERROR, None, f"daqp: {type(exc).__name__}: {exc}")
+    if flag not in _DAQP_SOLVED:
+        status = LevelStatus.INFEASIBLE if flag == -1 else LevelStatus.SOLVER_ERROR
+        return _Raw(None, status, info.get("iterations"), f"daqp exit flag {flag}")
+    return _Raw(np.asarray(x, dtype=float), LevelStatus.SOLVED, info.get("iterations"), "daqp")
 
 
 @dataclass(slots=True)
@@ -880,7 +935,7 @@ class _ProxSuiteBackend:
         st = obj.settings
         st.eps_abs, st.eps_rel = s.eps_abs, s.eps_rel
         st.eps_primal_inf, st.eps_dual_inf = s.eps_primal_inf, s.eps_dual_inf
-        st.max_iter = s.max_iter
+        st.max_iter, st.max_iter_in = s.max_iter, s.max_iter_in
         st.default_mu_in = s.mu_in
         st.primal_infeasibility_solving = False  # infeasible must be reported, not hidden
         st.verbose = False
@@ -895,7 +950,16 @@ class _ProxSuiteBackend:
     def solve_arrays(self, k: int, H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                      box_l: np.ndarray | None, box_u: np.ndarray | None) -> _Raw:
         """``min ½vᵀHv + gᵀv`` s.t. ``lo ≤ C v ≤ hi`` (and ``box_l ≤ v ≤ box_u`` if given) on the
-        persistent object of level ``k`` and this shape, warm-started; a failed warm solve is retried cold."""
+        persistent object of level ``k`` and this shape, warm-started.
+
+        The budget is in iterations, so that answers do not depend on the machine's load: ProxQP's
+        ``max_iter`` × ``max_iter_in`` per attempt (it cannot be interrupted on time), a failed warm
+        solve retried cold, then, if ``active_set_fallback``, DAQP (:func:`active_set_solve`, at most
+        ``max_iter_active_set`` iterations; counted in ``stats.active_set_fallbacks``).  Non-finite data are
+        refused before any solver sees them (a NaN once ran ProxQP for 1.5 M iterations, 9 s, measured)."""
+        if not qp_data_finite(H, g, C, lo, hi, _NO_VECTOR if box_l is None else box_l,
+                              _NO_VECTOR if box_u is None else box_u):
+            return _Raw(None, LevelStatus.SOLVER_ERROR, 0, "non-finite QP data (NaN in the problem)")
         box = box_l is not None
         if C.shape[0]:
             data = dict(H=H, g=g, C=C, l=lo, u=hi, l_box=box_l, u_box=box_u) if box else dict(H=H, g=g, C=C, l=lo, u=hi)
@@ -915,19 +979,25 @@ class _ProxSuiteBackend:
         obj.solve()
         settings, results, info = entry.settings, entry.results, entry.info
         out = info.status
-        if out is not self._solved:
-            if settings.initial_guess == self._warm:
-                self._stats.cold_retries += 1  # a warm start can fail where a cold one does not (measured)
-                settings.initial_guess = self._cold
-                obj.init(**data)  # same object; resets its adapted penalties too
-                obj.solve()
-                out = info.status
-        status = LevelStatus.SOLVED if out is self._solved else self._status.get(out, LevelStatus.SOLVER_ERROR)
-        entry.cold_next = status is not LevelStatus.SOLVED  # a failed result is a bad warm start
+        if out is not self._solved and settings.initial_guess == self._warm:
+            self._stats.cold_retries += 1  # a warm start can fail where a cold one does not (measured)
+            settings.initial_guess = self._cold
+            obj.init(**data)  # same object; resets its adapted penalties too
+            obj.solve()
+            out = info.status
+        entry.cold_next = out is not self._solved  # a failed result is a bad warm start
         message = self._messages.get(out)
         if message is None:
             message = self._messages[out] = f"proxsuite {out.name}"
-        return _Raw(results.x.copy(), status, info.iter, message)  # results.x is a view: copied
+        if out is self._solved:
+            return _Raw(results.x.copy(), LevelStatus.SOLVED, info.iter, message)  # results.x is a view: copied
+        status = self._status.get(out, LevelStatus.SOLVER_ERROR)
+        if not self._settings.active_set_fallback:
+            return _Raw(None, status, info.iter, message)
+        self._stats.active_set_fallbacks += 1
+        raw = active_set_solve(H, g, C, lo, hi, box_l, box_u, self._settings.max_iter_active_set)
+        raw.message = f"{message}; {raw.message}"
+        return raw
 
     @property
     def qp_objects(self) -> int:
@@ -1025,18 +1095,40 @@ class HierarchicalQP:
         return self._finish(results, len(data), t0)
 
     def _solve_cascade(self, data: list[_LevelData], lo: np.ndarray, hi: np.ndarray) -> list[LevelResult]:
-        """Level after level in the null-space basis; stops at the first failed level."""
+        """Level after level in the null-space basis; stops at the first failed level.  The last solved
+        level's answer is then made unique: the least-norm point of its optimal set (:meth:`_least_norm`),
+        never whatever a solver's warm start left along the directions no level owns."""
         cascade = Cascade.start(lo, hi)
         results: list[LevelResult] = []
+        solved = None  # the cascade after the last solved level
         for k, level in enumerate(data):
             qp = build_level_qp(level, cascade, self.settings)
             result = self._solve_level(k, level, qp)
             results.append(result)
             if not result.ok:
                 break
-            if k + 1 < len(data):
-                cascade = advance_cascade(level, cascade, qp, result.x, self.settings)
+            cascade = solved = advance_cascade(level, cascade, qp, result.x, self.settings)
+        if solved is not None and solved.Z.shape[1]:
+            last = results[-1] if results[-1].ok else results[-2]
+            last.x = self._least_norm(solved)
         return results
+
+    def _least_norm(self, cascade: Cascade) -> np.ndarray:
+        """The least-norm joint velocity (rad/s) of the optimal set ``x + Z z`` that ``cascade`` leaves
+        (bounds and inherited rows kept): ``min ½‖x + Z z‖²``, strictly convex in ``z``, solved by DAQP
+        (:func:`active_set_solve`: exact, finite).  ``cascade.x`` itself if that fails (it is feasible)."""
+        n = cascade.x.shape[0]
+        data = _LevelData(None, None, None, None, _eye(n), None, None, None, None, None)
+        qp = build_level_qp(data, cascade, self.settings)
+        raw = active_set_solve(qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, self.settings.max_iter_active_set)
+        result = self._check(data, qp, raw)
+        return result.x if result.ok else cascade.x
+
+    def reset(self) -> None:
+        """Forget every warm start, persistent solver object and counter: from here the solver
+        answers exactly as a new one."""
+        self.stats = HQPStats()
+        self._backend = _make_backend(self.backend, self.settings, self.stats)
 
     def _solve_on_line(self, data: list[_LevelData], line: _Line) -> list[LevelResult]:
         """Line fast path (module docstring): level 1 in closed form, level 2 (if any) on the line."""

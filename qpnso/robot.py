@@ -13,6 +13,7 @@ Conventions (Pinocchio's):
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -54,12 +55,42 @@ class JointFriction:
         return self.tau_max * (2.0 / np.pi) * np.arctan(self.beta * dq)
 
 
+def _real_array(x: object, name: str, what: str) -> np.ndarray:
+    """``x`` as a float array; :class:`InputError` for complex, boolean, object or text data (NumPy
+    would cast complex with only a warning, dropping the imaginary part)."""
+    try:
+        a = np.asarray(x)
+        if a.dtype.kind not in "fiu":
+            raise TypeError(f"got {a.dtype.name} data" if a.dtype.kind != "O" else "got non-numeric entries")
+        return a.astype(float, copy=False)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be {what} of real numbers: {exc}") from None
+
+
+def finite_scalar(x: object, name: str) -> float:
+    """``x`` as a finite real float, or :class:`InputError` naming ``name``."""
+    a = _real_array(x, name, "a number")
+    if a.shape not in ((), (1,)) or not math.isfinite(float(a.reshape(-1)[0])):
+        raise InputError(f"{name} must be one finite number, got {x!r}")
+    return float(a.reshape(-1)[0])
+
+
+def checked_pose(pose: object, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(rotation (3, 3), translation (3,) m)`` copies of a ``pinocchio.SE3``; :class:`InputError`
+    for another type, a non-finite entry, or a rotation that is not orthonormal (to 1e-6)."""
+    if not isinstance(pose, pin.SE3):
+        raise InputError(f"{name} must be a pinocchio.SE3, got {type(pose).__name__}")
+    R, p = np.array(pose.rotation), np.array(pose.translation)
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p))):
+        raise InputError(f"{name} contains NaN or inf")
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+        raise InputError(f"{name}.rotation is not a rotation matrix")
+    return R, p
+
+
 def as_vector(x: object, n: int, name: str) -> np.ndarray:
     """Return ``x`` as a finite float vector of length ``n`` or raise InputError."""
-    try:
-        v = np.asarray(x, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name} must be a numeric vector of length {n}: {exc}") from None
+    v = _real_array(x, name, f"a numeric vector of length {n}")
     if v.ndim == 2 and 1 in v.shape:
         v = v.reshape(-1)
     if v.shape != (n,):
@@ -131,6 +162,17 @@ class Robot:
                 f"its limits [{np.degrees(self.q_min[k]):.1f}, {np.degrees(self.q_max[k]):.1f}] deg"
             )
         return v
+
+    def require_redundant_arm(self) -> None:
+        """Raise :class:`ModelError` unless the arm has exactly 7 joints.
+
+        qpnso keeps a 6-D tool task and moves the arm in what is left: the one
+        redundant degree of freedom of a 7-DOF arm (the elbow's arm angle).  A
+        6-DOF arm has none, an arm with more joints has no single arm angle.
+        """
+        if self.nq != 7:
+            raise ModelError(f"qpnso needs a 7-DOF arm (one redundant degree of freedom for a 6-D tool task); "
+                             f"{self.name} has {self.nq} joints")
 
     def sample_configuration(self) -> np.ndarray:
         """A non-singular configuration inside the limits (rad): elbow and wrist bent;

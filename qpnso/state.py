@@ -36,6 +36,7 @@ class TickState:
     pose: np.ndarray  # (12,) rotation entries (column-major) then position (m): for cheap comparisons
     mass_matrix: np.ndarray  # (nq, nq) A(q), kg·m² (Pinocchio's crba)
     gravity: np.ndarray  # (nq,) g(q), N·m (Pinocchio's computeGeneralizedGravity)
+    flags: int = 0  # status bits of qpnso.tick.sanitize_state: what was not finite and made safe
 
 
 class StateEvaluator:
@@ -75,9 +76,14 @@ class StateEvaluator:
         return self._fn.evaluate_in_place(q)
 
     def state(self, q: np.ndarray, flat: np.ndarray) -> TickState:
-        """The :class:`TickState` of a stacked state ``flat`` (views of it) at ``q``."""
+        """The :class:`TickState` of a stacked state ``flat`` (views of it) at ``q``, made safe first
+        (:func:`qpnso.tick.sanitize_state`, in place: an undefined cost is 0, an undefined arm angle
+        singular; :attr:`TickState.flags` says so)."""
+        from qpnso.tick import sanitize_state
+
+        flags = sanitize_state(flat, self.offsets)
         R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, A, g = state_views(flat, self.offsets)
-        return TickState(q, R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, flat[:12], A, g)
+        return TickState(q, R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, flat[:12], A, g, flags)
 
 
 @njit(cache=True)

@@ -216,7 +216,7 @@ class QPStrategy(Strategy):
             return Level(H=self._identity, g=step)
         lo, hi = elbow.rom
         row = state.arm_angle_gradient.reshape(1, -1)
-        l, u = elbow_row_bounds(elbow.ns, lo, hi, cfg.elbow_gain)
+        l, u = elbow_row_bounds(elbow.ns, lo, hi, cfg.elbow_gain, cfg.recovery_speed)
         return Level(H=self._identity, g=step, C=row, l=l, u=u, slack_weight=cfg.slack_weight)
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:

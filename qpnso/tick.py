@@ -44,6 +44,9 @@ TICK_NOT_FINITE = 4
 """A code of :func:`qp_tick`: ``q`` has a NaN or an infinite entry; nothing was done (the caller raises)."""
 TICK_ELBOW_DROPPED = 5
 """A code of :func:`qp_tick`: the arm angle is singular; nothing was done (the general path drops the elbow)."""
+TICK_STATE_NOT_FINITE = 7
+"""A code of :func:`qp_tick`: the state at a finite ``q`` is not finite (:func:`sanitize_state`); nothing
+was done (the caller stops the joints)."""
 TICK_NEED_INTERVAL = 6
 """A code of :func:`qp_tick`: the elbow memory advanced and the continuity interval must be recomputed
 (:func:`store_interval`), then :func:`qp_tick` called again with ``advance`` False."""
@@ -51,6 +54,8 @@ TICK_NEED_INTERVAL = 6
 # Status bits (qpnso.controller.Status has the same values)
 FLAG_QP_FAILED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_ROM_EMPTY = 1, 2, 4, 8
 FLAG_Q_OUT_OF_LIMITS, FLAG_INTERVAL_STALE, FLAG_TOOL_LIMITED = 16, 32, 64
+FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = 128, 256, 512, 1024
+FLAG_INTERNAL_ERROR = 2048
 
 TOOL_RESIDUAL_REPORTED = 1e-6
 """m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
@@ -58,6 +63,8 @@ the tool's motion) is flagged ``TOOL_LIMITED``."""
 ELBOW_SLACK_REPORTED = 1e-3
 """rad/s: an elbow row violated by more than this is flagged ``ELBOW_SLACK``.  A soft
 row held by the cost is always violated by about (cost force)/(2·slack_weight) ≈ 1e-5."""
+ELBOW_ROM_TOL = 1e-6
+"""rad: an arm angle farther than this outside ROM_t is flagged ``ELBOW_OUTSIDE_ROM``."""
 TOOL_MOVED_TOL = 1e-6
 """m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
 cached continuity interval (its ends move by ~1e-6 rad at most, against a safety margin of degrees)."""
@@ -86,6 +93,23 @@ def pose_error(R, p, R_ref, p_ref):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def pose_correction(e, gains):  # type: ignore[no-untyped-def]
+    """Level 1's correction ``K_p·e`` (m/s, rad/s; world frame) of the pose error ``e`` (m, rad), its linear
+    part scaled to at most ``gains[8]`` m/s and its angular part to at most ``gains[9]`` rad/s
+    (``ControllerConfig.pose_correction_speed``/``pose_correction_angular_speed``): a tool knocked off its
+    reference (a pull, a jump in the path, a joint slipped past its limit) comes back at a bounded speed,
+    not with every joint at its velocity limit.  The caps bind only for errors above cap/K_p (0.5 mm
+    at the defaults): a held tool's correction is unchanged."""
+    out = gains[0] * e
+    for start, cap in ((0, gains[8]), (3, gains[9])):
+        norm = math.sqrt(out[start] ** 2 + out[start + 1] ** 2 + out[start + 2] ** 2)
+        if norm > cap:
+            for i in range(start, start + 3):
+                out[i] *= cap / norm
+    return out
+
+
+@njit(cache=True)
 def limits_status(q, low, high):  # type: ignore[no-untyped-def]
     """0: ``q`` finite and within ``[low, high]``; 1: finite, some entry outside; 2: NaN or inf."""
     code = 0
@@ -107,14 +131,20 @@ def max_abs_difference(a, b):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def velocity_bounds(q, q_min, q_max, dq_max, gain):  # type: ignore[no-untyped-def]
+def velocity_bounds(q, q_min, q_max, dq_max, gain, recovery):  # type: ignore[no-untyped-def]
     """``(lb, ub)`` (rad/s): ``−γ(q − q_min) ≤ q̇ ≤ γ(q_max − q)`` clipped to ``±dq_max`` and
-    ``ub ≥ lb`` (γ·dt ≤ 1: q never crosses a limit; outside one, the rows push back at rate γ)."""
+    ``ub ≥ lb`` (γ·dt ≤ 1: q never crosses a limit).  A joint outside a limit is pushed back at rate γ
+    and moves at most at ``recovery`` rad/s (``ControllerConfig.recovery_speed``) either way, never at
+    its velocity limit."""
     n = q.shape[0]
     lb, ub = np.empty(n), np.empty(n)
     for i in range(n):
         lo = min(max(gain * (q_min[i] - q[i]), -dq_max[i]), dq_max[i])
         hi = min(max(gain * (q_max[i] - q[i]), -dq_max[i]), dq_max[i])
+        if q[i] < q_min[i]:  # outside: back at most at the recovery speed, and no faster the other way
+            lo, hi = min(lo, recovery), min(hi, recovery)
+        elif q[i] > q_max[i]:
+            lo, hi = max(lo, -recovery), max(hi, -recovery)
         lb[i], ub[i] = lo, max(hi, lo)
     return lb, ub
 
@@ -140,10 +170,11 @@ def low_pass(previous, step, alpha):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def elbow_row_bounds(ns, rom_lo, rom_hi, gain):  # type: ignore[no-untyped-def]
+def elbow_row_bounds(ns, rom_lo, rom_hi, gain, recovery):  # type: ignore[no-untyped-def]
     """``(l, u)`` (1,) of the elbow row ``ξ(ns_lo − ns) ≤ ∇nsᵀ q̇ ≤ ξ(ns_hi − ns)`` (rad/s): the velocity
-    damper that keeps the arm angle in ROM_t, or brings it back at rate ξ."""
-    return np.array([gain * (rom_lo - ns)]), np.array([gain * (rom_hi - ns)])
+    damper that keeps the arm angle in ROM_t, or brings it back at rate ξ but at most ``recovery``
+    rad/s (a fast elbow return would drag the held tool: its second-order drift grows as q̇²)."""
+    return np.array([min(gain * (rom_lo - ns), recovery)]), np.array([max(gain * (rom_hi - ns), -recovery)])
 
 
 @njit(cache=True)
@@ -156,6 +187,60 @@ def answer_bits(tool_residual, slack_max):  # type: ignore[no-untyped-def]
         bits |= FLAG_TOOL_LIMITED
     if slack_max > ELBOW_SLACK_REPORTED:
         bits |= FLAG_ELBOW_SLACK
+    return bits
+
+
+@njit(cache=True)
+def sanitize_state(flat, offsets):  # type: ignore[no-untyped-def]
+    """Make a stacked state (:func:`qpnso.state.state_views`) safe to act on, in place; returns status
+    bits.  A cost or cost gradient that is not finite (the tool Jacobian singular: Λ undefined) is set
+    to 0 (``COST_UNDEFINED``: no cost step this tick); an arm angle or gradient that is not finite marks
+    the arm angle singular (its sine measure set to 0: the elbow rows are dropped).  Anything else not
+    finite (pose, J, A, g) is ``INTERNAL_ERROR``: the caller must not act on it."""
+    o = offsets
+    bits = 0
+    for i in range(o[3], o[5]):
+        if not math.isfinite(flat[i]):
+            flat[o[3]:o[5]] = 0.0
+            bits |= FLAG_COST_UNDEFINED
+            break
+    for i in range(o[5], o[8]):
+        if not math.isfinite(flat[i]):
+            flat[o[5]:o[8]] = 0.0  # wrist sine 0: singular
+            break
+    for i in range(o[0], o[3]):
+        if not math.isfinite(flat[i]):
+            return bits | FLAG_INTERNAL_ERROR
+    for i in range(o[8], o[10]):
+        if not math.isfinite(flat[i]):
+            return bits | FLAG_INTERNAL_ERROR
+    return bits
+
+
+@njit(cache=True)
+def finish_command(q, dq, q_des, tau, gravity, tau_limit, ns, rom_lo, rom_hi, dropped):  # type: ignore[no-untyped-def]
+    """The last step of every tick, in place: the torque saturated at the model's effort limits
+    (``TORQUE_SATURATED``; a limit ≤ 0 means none given), an arm angle outside ROM_t flagged
+    (``ELBOW_OUTSIDE_ROM``, unless the elbow is dropped), and a command that is not finite replaced
+    by the stop command (dq 0, q_des = q, τ = g(q), ``INTERNAL_ERROR``).  Returns the bits."""
+    bits = 0
+    finite = True
+    for i in range(dq.shape[0]):
+        if not (math.isfinite(dq[i]) and math.isfinite(q_des[i]) and math.isfinite(tau[i])):
+            finite = False
+    if not finite:
+        dq[:] = 0.0
+        q_des[:] = q
+        for i in range(tau.shape[0]):
+            tau[i] = gravity[i] if math.isfinite(gravity[i]) else 0.0
+        bits |= FLAG_INTERNAL_ERROR
+    for i in range(tau.shape[0]):
+        limit = tau_limit[i]
+        if limit > 0.0 and abs(tau[i]) > limit:
+            tau[i] = limit if tau[i] > 0.0 else -limit
+            bits |= FLAG_TORQUE_SATURATED
+    if not dropped and not (rom_lo - ELBOW_ROM_TOL <= ns <= rom_hi + ELBOW_ROM_TOL):
+        bits |= FLAG_ELBOW_OUTSIDE_ROM
     return bits
 
 
@@ -284,7 +369,7 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     dq_max (rad/s); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
     ROM centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
     ``gains`` = (pose gain K_p 1/s, joint-limit gain 1/s, cost gain, null-space speed max rad/s, filter α,
-    elbow gain 1/s, slack scale 1/√(2ρ)); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ);
+    elbow gain 1/s, slack scale 1/√(2ρ), recovery speed rad/s, pose correction's speed caps m/s and rad/s); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ);
     ``identity`` (n, n) level 2's Hessian.
 
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`), the arm angle's singularity
@@ -302,6 +387,9 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     if limit == 2:
         return (TICK_NOT_FINITE,) + nothing[1:]
     n = q.shape[0]
+    unsafe = sanitize_state(flat, offsets)
+    if unsafe & FLAG_INTERNAL_ERROR:
+        return (TICK_STATE_NOT_FINITE,) + nothing[1:]
     R, p, J, cost, cost_gradient, ns_wrapped, ns_gradient, wrist_sin, elbow_offset, _, _ = state_views(flat, offsets)
     if arm_angle_singular(wrist_sin, elbow_offset, elbow):
         return (TICK_ELBOW_DROPPED,) + nothing[1:]
@@ -311,22 +399,22 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
             return (TICK_NEED_INTERVAL,) + nothing[1:]
     ns = memory[NS]
     rom_lo, rom_hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, ns0, elbow)
-    bits = (FLAG_Q_OUT_OF_LIMITS if limit == 1 else 0) | (FLAG_ROM_EMPTY if empty else 0)
+    bits = unsafe | (FLAG_Q_OUT_OF_LIMITS if limit == 1 else 0) | (FLAG_ROM_EMPTY if empty else 0)
     e, ok = pose_error(R, p, R_ref, p_ref)  # level 1: J q̇ = twist + K_p e
     e_pos = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
     e_rot = math.sqrt(e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
     if not ok:
         return LINE_NO_POSE, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, 0.0, cost, bits
-    b1 = twist + gains[0] * e
+    b1 = twist + pose_correction(e, gains)
     rank_tol, damping, reg = qp_tol[0], qp_tol[1], qp_tol[2]
-    lb, ub = velocity_bounds(q, limits[2], limits[3], limits[4], gains[1])
+    lb, ub = velocity_bounds(q, limits[2], limits[3], limits[4], gains[1], gains[7])
     code, x0, d, t_lo, t_hi = task_line(J, b1, lb, ub, rank_tol, damping)
     if code != LINE_OK:
         return code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, 0.0, cost, bits
     x1 = least_norm_point(x0, d, t_lo, t_hi)  # level 1's answer, the safe fallback
     r = matvec(J, x1) - b1
     step[:] = low_pass(step, cost_step(J, cost_gradient, gains[2], gains[3]), gains[4])  # level 2
-    lo, hi = elbow_row_bounds(ns, rom_lo, rom_hi, gains[5])
+    lo, hi = elbow_row_bounds(ns, rom_lo, rom_hi, gains[5], gains[7])
     H[:], g[:], C[:], l[:], u[:], box_l[:], box_u[:], _ = line_qp_arrays(
         d, x0, t_lo, t_hi, np.zeros((0, n)), np.zeros(0), identity, step, ns_gradient.reshape(1, n), lo, hi,
         1, gains[6], reg, rank_tol, damping)

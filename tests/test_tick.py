@@ -101,14 +101,20 @@ def test_pose_error_near_pi_is_refused_and_the_controller_uses_log3(robot) -> No
 def test_velocity_bounds_keep_q_inside_its_limits(robot, q_list) -> None:
     q = np.array(q_list)
     gain = 20.0
-    lb, ub = tick.velocity_bounds(q, robot.q_min, robot.q_max, robot.dq_max, gain)
+    recovery = 0.2
+    lb, ub = tick.velocity_bounds(q, robot.q_min, robot.q_max, robot.dq_max, gain, recovery)
     assert np.all(lb <= ub) and np.all(np.abs(lb) <= robot.dq_max) and np.all(np.abs(ub) <= robot.dq_max)
     inside = (q >= robot.q_min) & (q <= robot.q_max)
     for v in (lb, ub):  # one tick at either bound stays inside (γ·dt ≤ 1)
         q1 = q + DT * v
         assert np.all((q1[inside] >= robot.q_min[inside] - 1e-12) & (q1[inside] <= robot.q_max[inside] + 1e-12))
-    below = q < robot.q_min  # outside: pushed back (never further out)
-    assert np.all(lb[below] >= 0) and np.all(ub[q > robot.q_max] <= 0)
+    below, above = q < robot.q_min, q > robot.q_max  # outside: pushed back (never further out) ...
+    assert np.all(lb[below] >= 0) and np.all(ub[above] <= 0)
+    # ... at the rate γ·distance, but never faster than the recovery speed
+    assert np.allclose(lb[below], np.minimum(gain * (robot.q_min - q), recovery)[below])
+    assert np.allclose(ub[above], np.maximum(gain * (robot.q_max - q), -recovery)[above])
+    out = below | above
+    assert np.all(np.maximum(np.abs(lb), np.abs(ub))[out] <= recovery + 1e-15)
 
 
 def test_cost_step_saturates_its_null_space_part(robot) -> None:

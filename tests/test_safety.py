@@ -1,0 +1,232 @@
+"""Safe under every input (issue 13): bounded, unique, finite commands; a reset that forgets;
+errors that name the problem.  Each test reproduces one way the controller once failed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+import qpnso
+from qpnso import Controller, ControllerConfig, QPSettings
+from qpnso.controller import STRATEGIES, Status
+from qpnso.hqp import HierarchicalQP, Level, LevelStatus, active_set_solve
+
+Q1 = np.radians([10, 40, -10, -70, 20, 50, 0])
+TOOL = [0.0, 0.0, 0.1]
+
+
+@pytest.fixture(scope="module")
+def robot() -> qpnso.Robot:
+    return qpnso.load_robot("lwr4p", tool_offset=TOOL)
+
+
+@pytest.fixture(scope="module")
+def controllers(robot) -> dict[str, Controller]:
+    return {s: Controller(robot, ControllerConfig(strategy=s)) for s in STRATEGIES}
+
+
+def tool_pose(robot: qpnso.Robot, q: np.ndarray) -> pin.SE3:
+    """The tool pose by Pinocchio's forward kinematics (independent of the controller's state)."""
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, q)
+    return data.oMf[robot.tool_frame_id].copy()
+
+
+def run(ctrl: Controller, q: np.ndarray, twists: list) -> tuple[np.ndarray, list]:
+    """Closed loop ``q ← q + dt·dq`` (a position-controlled arm) with one twist (or None) per tick."""
+    cmds = []
+    for twist in twists:
+        cmd = ctrl.step(q, tool_twist=twist)
+        cmds.append(cmd)
+        q = q + ctrl.config.dt * cmd.dq
+    return q, cmds
+
+
+# ------------------------------------------------------------------ item 1
+def test_q_in_degrees_is_refused_naming_the_joint_in_both_units(controllers) -> None:
+    ctrl = controllers["qp"]
+    ctrl.reset(Q1)
+    with pytest.raises(qpnso.InputError, match=r"q\[0\].*573.*°.*\(10 rad\).*170°.*2\.96706.*radians"):
+        ctrl.step(np.degrees(Q1))
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_reset_forgets_everything(robot, controllers, strategy: str) -> None:
+    """After any history, ``reset(q)`` answers exactly as a new controller (warm starts included)."""
+    used = controllers[strategy]
+    used.reset(Q1)
+    rng = np.random.default_rng(3)
+    run(used, Q1, [rng.normal(0, 0.05, 6) for _ in range(30)])  # a history: warm starts, filters, caches
+    with pytest.raises(qpnso.InputError):
+        used.step(np.degrees(Q1))
+    fresh = Controller(robot, ControllerConfig(strategy=strategy))
+    twists = [np.array([0.01, 0, 0, 0, 0, 0])] * 5 + [None] * 5
+    for start in (np.zeros(7), Q1):  # straight up (singular) and an ordinary pose
+        used.reset(start)
+        fresh.reset(start)
+        _, a = run(used, start, twists)
+        _, b = run(fresh, start, twists)
+        for x, y in zip(a, b):
+            assert x.status == y.status
+            np.testing.assert_allclose(x.dq, y.dq, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(x.tau, y.tau, rtol=0, atol=1e-9)
+        if not start.any():
+            assert np.abs(a[0].dq).max() < 0.02  # the twist asks 1 cm/s: nothing fast (once 3.5 rad/s)
+
+
+# ------------------------------------------------------------------ item 2
+@pytest.mark.parametrize("strategy", ["qp", "damped"])
+def test_a_violent_pull_is_recovered(robot, controllers, strategy: str) -> None:
+    """A 20 ms pull at 2 m/s, then the tool held: never a failed QP, OK again within 100 ticks,
+    and the tool back on its reference."""
+    ctrl = controllers[strategy]
+    q0 = robot.sample_configuration()
+    ctrl.reset(q0)
+    q, pull = run(ctrl, q0, [np.array([2.0, 0, 0, 0, 0, 0])] * 20)
+    q, hold = run(ctrl, q, [None] * 300)
+    assert not any(c.status & (Status.QP_FAILED | Status.INTERNAL_ERROR) for c in pull + hold)
+    assert all(c.ok for c in hold[100:])
+    assert hold[-1].tool_error[0] < 1e-6 and hold[-1].tool_error[1] < 1e-6
+
+
+# ------------------------------------------------------------------ items 3, 4
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_straight_up_gives_a_finite_command_and_says_why(controllers, strategy: str) -> None:
+    """q = 0 (valid, singular: the cost's Λ and the arm angle are undefined): finite command, no
+    exception, the cost flagged undefined instead of NaN reaching the QP."""
+    ctrl = controllers[strategy]
+    ctrl.reset(np.zeros(7))
+    for twist in (None, [0.01, 0, 0, 0, 0, 0]):
+        cmd = ctrl.step(np.zeros(7), tool_twist=twist)
+        assert np.all(np.isfinite(cmd.dq)) and np.all(np.isfinite(cmd.tau)) and np.isfinite(cmd.cost)
+        assert cmd.status & Status.COST_UNDEFINED and cmd.status & Status.ELBOW_DROPPED
+        assert not cmd.status & (Status.QP_FAILED | Status.INTERNAL_ERROR), cmd.message
+
+
+def test_non_finite_qp_data_never_reach_the_solver() -> None:
+    qp = HierarchicalQP(2)
+    result = qp.solve([Level(A=np.eye(2), b=np.array([np.nan, 0.0]))], check=False)
+    assert not result.ok and result.levels[0].status is LevelStatus.SOLVER_ERROR
+    assert "non-finite" in result.levels[0].message and result.levels[0].iterations == 0
+
+
+@pytest.mark.parametrize("where", ["tool_pose", "ns0", "complex_q", "complex_twist", "tool_pose_type",
+                                   "text_q", "dq"])
+def test_bad_inputs_raise_input_error_naming_them(robot, controllers, where: str) -> None:
+    ctrl = controllers["damped"]
+    ctrl.reset(Q1)
+    pose = tool_pose(robot, Q1)
+    if where == "tool_pose":
+        bad = pin.SE3(pose.rotation, np.array([np.nan, 0.0, 0.0]))
+        call, name = (lambda: ctrl.step(Q1, tool_pose=bad)), "tool_pose"
+    elif where == "tool_pose_type":
+        call, name = (lambda: ctrl.step(Q1, tool_pose=np.eye(4))), "tool_pose"
+    elif where == "ns0":
+        call, name = (lambda: ctrl.reset(Q1, ns0=float("nan"))), "ns0"
+    elif where == "complex_q":
+        call, name = (lambda: ctrl.step(Q1 + 1e-3j)), "q"
+    elif where == "complex_twist":
+        call, name = (lambda: ctrl.step(Q1, tool_twist=np.zeros(6) + 1j)), "tool_twist"
+    elif where == "text_q":
+        call, name = (lambda: ctrl.step([str(x) for x in Q1])), "q"
+    else:
+        call, name = (lambda: ctrl.step(Q1, dq=10 * robot.dq_max)), r"dq\[0\]"
+    with pytest.raises(qpnso.InputError, match=name):
+        call()
+    cmd = ctrl.step(Q1)  # the controller goes on as before
+    assert cmd.ok and np.all(np.isfinite(cmd.dq))
+
+
+# ------------------------------------------------------------------ item 5
+def test_held_tool_does_not_drift_while_the_elbow_returns(robot, controllers) -> None:
+    """A start far outside ROM_t (ns0 1.2 rad away): the elbow comes back at a bounded speed and the
+    held tool stays within 1e-6 m and 1e-6 rad of where it was (Pinocchio's forward kinematics)."""
+    ctrl = controllers["qp"]
+    q0 = Q1.copy()
+    ctrl.reset(q0, ns0=ctrl.evaluate(q0).arm_angle + 1.2)
+    start = tool_pose(robot, q0)
+    q = q0
+    worst = (0.0, 0.0)
+    outside = 0
+    for _ in range(400):
+        cmd = ctrl.step(q)
+        outside += bool(cmd.status & Status.ELBOW_OUTSIDE_ROM)
+        q = q + ctrl.config.dt * cmd.dq
+        now = tool_pose(robot, q)
+        worst = (max(worst[0], np.linalg.norm(now.translation - start.translation)),
+                 max(worst[1], np.linalg.norm(pin.log3(now.rotation @ start.rotation.T))))
+    assert outside > 100  # the excursion was flagged while it lasted (the test is not vacuous) ...
+    assert worst[0] < 1e-6 and worst[1] < 1e-6
+
+
+# ------------------------------------------------------------------ build list
+def test_a_joint_slightly_outside_its_limits_comes_back_slowly(robot, controllers) -> None:
+    ctrl = controllers["qp"]
+    q = Q1.copy()
+    q[3] = robot.q_min[3] - np.radians(1.5)  # inside the 2° tolerance
+    ctrl.reset(np.clip(q, robot.q_min, robot.q_max))
+    cmd = ctrl.step(q)
+    assert cmd.status & Status.Q_OUT_OF_LIMITS
+    assert 0 < cmd.dq[3] <= ctrl.config.recovery_speed + 1e-9  # back inside, never at the velocity limit
+    # the tool moved with the joint (1.4 cm): it is brought back at the pose correction's speed, not
+    # with every joint at its velocity limit
+    assert cmd.tool_error[0] > 0.01 and np.all(np.abs(cmd.dq) < 0.3 * robot.dq_max)
+
+
+def test_torque_is_saturated_at_the_effort_limits(robot) -> None:
+    far = np.clip(Q1 + 0.8, robot.q_min, robot.q_max)
+    ctrl = Controller(robot, ControllerConfig(strategy="fixed", posture_stiffness=1e4, fixed_posture=tuple(far)))
+    ctrl.reset(Q1)
+    cmd = ctrl.step(Q1)
+    assert cmd.status & Status.TORQUE_SATURATED
+    assert np.all(np.abs(cmd.tau) <= robot.tau_limit + 1e-12)
+    assert np.any(np.isclose(np.abs(cmd.tau), robot.tau_limit))
+
+
+def test_active_set_fallback_solves_what_proxqp_cannot_in_its_budget() -> None:
+    """A one-iteration ProxQP budget fails; DAQP then answers, matching the closed form."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(6, 7))
+    b = rng.normal(size=6)
+    lb, ub = -np.full(7, 10.0), np.full(7, 10.0)
+    qp = HierarchicalQP(7, settings=QPSettings(max_iter=1, max_iter_in=1, line_fast_path=False))
+    result = qp.solve([Level(A=A, b=b)], lb, ub)
+    assert result.ok and qp.stats.active_set_fallbacks >= 1
+    np.testing.assert_allclose(result.x, np.linalg.pinv(A) @ b, atol=1e-12)  # least norm: unique
+
+
+def test_active_set_solve_matches_a_closed_form() -> None:
+    H, g = np.diag([2.0, 4.0]), np.array([-2.0, -8.0])  # unconstrained optimum (1, 2)
+    raw = active_set_solve(H, g, np.array([[1.0, 1.0]]), np.array([-np.inf]), np.array([2.0]), None, None)
+    assert raw.status is LevelStatus.SOLVED
+    np.testing.assert_allclose(raw.v, [1 / 3, 5 / 3], atol=1e-12)  # on x + y = 2: 6x − 2 = 0 by hand
+
+
+def test_general_cascade_answer_does_not_depend_on_the_warm_start(robot) -> None:
+    """Level 1 alone off the line fast path: the least-norm point of its optimal set, whatever was
+    solved before (a warm start once left an arbitrary null-space component)."""
+    J = pin.computeFrameJacobian(robot.model, robot.model.createData(), Q1, robot.tool_frame_id,
+                                 pin.LOCAL_WORLD_ALIGNED)
+    b = np.array([0.01, 0, 0, 0, 0, 0])
+    lb, ub = -robot.dq_max, robot.dq_max
+    qp = HierarchicalQP(7, settings=QPSettings(line_fast_path=False))
+    first = qp.solve([Level(A=J, b=b)], lb, ub).x
+    qp.solve([Level(A=J, b=np.array([0.3, -0.2, 0.1, 0.5, 0, 0]))], lb, ub)  # another warm start
+    qp.solve([Level(A=J, b=b), Level(g=np.ones(7))], lb, ub)
+    again = qp.solve([Level(A=J, b=b)], lb, ub).x
+    np.testing.assert_allclose(first, again, atol=1e-9)
+    np.testing.assert_allclose(first, np.linalg.pinv(J) @ b, atol=1e-9)
+
+
+def test_pose_correction_is_capped_only_for_large_errors() -> None:
+    from qpnso.tick import pose_correction
+
+    gains = np.zeros(10)
+    gains[0], gains[8], gains[9] = 200.0, 0.1, 1.0
+    small = np.array([1e-6, -2e-6, 0.0, 1e-6, 0.0, 0.0])
+    np.testing.assert_array_equal(pose_correction(small, gains), 200.0 * small)  # a held tool's: unchanged
+    big = np.array([0.03, 0.04, 0.0, 0.0, 0.2, 0.0])  # 5 cm, 0.2 rad
+    out = pose_correction(big, gains)
+    np.testing.assert_allclose(out[:3], [0.06, 0.08, 0.0], atol=1e-15)  # 0.1 m/s along the error
+    np.testing.assert_allclose(out[3:], [0.0, 1.0, 0.0], atol=1e-15)  # 1 rad/s about it

@@ -23,7 +23,7 @@ from qpnso.hqp import Level
 from qpnso.tick import cost_step, elbow_row_bounds, low_pass, qp_nullspace_torque
 
 if TYPE_CHECKING:
-    from qpnso.controller import Controller, ElbowState
+    from qpnso.controller import Controller, ControllerConfig, ElbowState
     from qpnso.state import TickState
 
 
@@ -74,10 +74,19 @@ class FixedPosture(Strategy):
         self.q_ref = q0.copy() if ref is None else self.ctrl.robot.check_q(ref, "fixed_posture")
 
     def level2(self, state: "TickState", elbow: "ElbowState") -> Level:
-        return Level(A=self._identity, b=self.cfg.posture_gain * (self.q_ref - state.q))
+        return Level(A=self._identity, b=capped(self.cfg.posture_gain * (self.q_ref - state.q), self.cfg))
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         return self.cfg.posture_stiffness * (self.q_ref - state.q) - self.cfg.joint_damping * dq_meas
+
+
+def capped(velocity: np.ndarray, cfg: "ControllerConfig") -> np.ndarray:
+    """A kinematic level-2 target (rad/s) scaled to norm at most ``nullspace_speed_max``, as the ``qp``
+    strategy's cost step is: a posture far away is approached at a bounded speed (an elbow-up return
+    once asked 6 rad/s of the arm angle, and dragged the held tool by 8 µm)."""
+    norm = float(np.sqrt(velocity @ velocity))
+    limit = cfg.nullspace_speed_max
+    return velocity * (limit / norm) if norm > limit else velocity
 
 
 def arm_angle_step(state: "TickState", delta_ns: float) -> np.ndarray:
@@ -104,7 +113,8 @@ class ElbowUp(Strategy):
 
     def level2(self, state, elbow) -> Level:
         row = state.arm_angle_gradient.reshape(1, -1)
-        return Level(A=row, b=np.array([self.cfg.posture_gain * self._delta(elbow)]))
+        rate = self.cfg.posture_gain * self._delta(elbow)  # rad/s of the arm angle
+        return Level(A=row, b=capped(np.array([rate]), self.cfg))
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         return (self.cfg.posture_stiffness * arm_angle_step(state, self._delta(elbow))
@@ -169,7 +179,7 @@ class RomModulation(Strategy):
         step = self._setpoint_step(state, elbow)
         if step is None:
             return None
-        return Level(A=self._identity, b=self.cfg.posture_gain * step)
+        return Level(A=self._identity, b=capped(self.cfg.posture_gain * step, self.cfg))
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         step = self._setpoint_step(state, elbow)

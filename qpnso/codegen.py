@@ -254,12 +254,12 @@ class FastFunction:
             self._run(inputs)
             return self._out[0].copy()
 
-    def evaluate_in_place(self, x: np.ndarray) -> np.ndarray:
-        """For a function of one dense vector input ``x``: the first output's entries in the
-        function's own buffer, not copied, valid until the next evaluation (the compiled tick reads
-        it at once)."""
+    def evaluate_in_place(self, *inputs: np.ndarray) -> np.ndarray:
+        """For a function of dense vector inputs: the first output's entries in the function's own
+        buffer, not copied, valid until the next evaluation (the compiled tick reads it at once)."""
         with self._lock:
-            self._in[0][:] = x
+            for dst, src in zip(self._in, inputs):
+                dst[:] = src
             self._evaluate()
             return self._out[0]
 

@@ -80,8 +80,6 @@ _WRIST_SIN_MIN = float(np.sin(np.radians(WRIST_CONE_DEG)))
 _ELBOW_BITS = FLAG_INTERVAL_STALE | FLAG_ROM_EMPTY
 _NOT_OK_BITS = FLAG_QP_FAILED | FLAG_ELBOW_DROPPED | FLAG_INTERNAL_ERROR
 STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom")
-SECOND_ORDER_SPEED = 0.1
-"""rad/s: below this joint speed (norm) the step's second-order tool drift (about 1e-8 m) is not corrected."""
 
 
 class Status(enum.Flag):
@@ -264,14 +262,12 @@ class Controller:
         self._gains = np.array([cfg.pose_gain, cfg.joint_limit_gain, cfg.cost_gain, cfg.nullspace_speed_max,
                                 self.strategy.filter_alpha if self._can_compile else 0.0, cfg.elbow_gain,
                                 1.0 / math.sqrt(2.0 * cfg.slack_weight), cfg.recovery_speed,
-                                cfg.pose_correction_speed, cfg.pose_correction_angular_speed])
+                                cfg.pose_correction_speed, cfg.pose_correction_angular_speed, 0.5 * cfg.dt])
         tolerance = math.radians(cfg.q_limit_tolerance_deg)
         self._q_accepted = (robot.q_min - tolerance, robot.q_max + tolerance)  # rad: beyond, InputError
         self._dq_accepted = cfg.dq_tolerance_factor * robot.dq_max  # rad/s: beyond, InputError
         limit = np.array(robot.tau_limit, dtype=float)
         self._tau_limit = np.where(np.isfinite(limit) & (limit > 0), limit, 0.0)  # N·m; 0: none given
-        self._drift_data = robot.model.createData()  # for the second-order term (_second_order)
-        self._zero_acceleration = np.zeros(robot.nq)
         st = self.qp.settings
         self._qp_tol = np.array([st.rank_tol, st.damping_threshold, st.regularization or 0.0])
         self._line = LineTickBuffers(self.strategy.filtered_step) if self._can_compile else None
@@ -352,10 +348,9 @@ class Controller:
             self.ref_rotation, self.ref_position = checked_pose(tool_pose, "tool_pose")
         fallbacks = self.qp.stats.active_set_fallbacks
         try:
-            target = self._second_order(qv, twist)
-            cmd = self._compiled(qv, target, dq_meas, t0) if self.compiled_tick else None
+            cmd = self._compiled(qv, twist, dq_meas, t0) if self.compiled_tick else None
             if type(cmd) is not Command:
-                cmd = self._general(qv, target, dq_meas, t0, cmd)
+                cmd = self._general(qv, twist, dq_meas, t0, cmd)
         except QpnsoError:
             raise
         except Exception as exc:  # a bug must not reach the robot as a traceback: stop, say why
@@ -368,21 +363,6 @@ class Controller:
         self._dq_prev = cmd.dq
         self.step_count += 1
         return cmd
-
-    def _second_order(self, qv: np.ndarray, twist: np.ndarray) -> np.ndarray:
-        """Level 1's tool velocity with the step's second-order term taken out: over a tick at joint
-        velocity q̇ the tool moves by ``dt·J q̇ + ½dt²·J̇q̇``, so the task asks ``J q̇ = v − ½dt·J̇q̇``
-        with J̇q̇ (the tool point's classical acceleration at q̈ = 0, world-aligned; Pinocchio) at the
-        previous command.  Without it a null-space motion at |q̇| drags a held tool by about
-        1.2 µm·(|q̇|/(rad/s))² (measured 3 µm at 1 rad/s, 8 µm and 2e-5 rad for elbow-up's
-        faster returns); below :data:`SECOND_ORDER_SPEED` the term is under 1e-8 m and skipped."""
-        dq = self._dq_prev
-        if dq @ dq < SECOND_ORDER_SPEED ** 2:
-            return twist
-        model, data = self.robot.model, self._drift_data
-        pin.forwardKinematics(model, data, qv, dq, self._zero_acceleration)
-        drift = pin.getFrameClassicalAcceleration(model, data, self.robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED)
-        return twist - (0.5 * self.config.dt) * drift.vector
 
     def _refuse_q(self, qv: np.ndarray) -> None:
         """Raise :class:`InputError` naming the first joint beyond its limits by more than
@@ -440,7 +420,7 @@ class Controller:
                               "the arm's state is not finite: joints stopped")
         error = self._pose_error(state)
         lb, ub = self._velocity_bounds(state.q)
-        level1 = Level(A=state.jacobian, b=twist + pose_correction(error, self._gains))
+        level1 = Level(A=state.jacobian, b=self._level1_target(twist, error, state))
         level2 = self.strategy.level2(state, elbow)
         levels = [level1] if level2 is None else [level1, level2]
         result = self.qp.solve(levels, lb, ub, check=False)  # arrays built here; the answer is still checked
@@ -455,10 +435,19 @@ class Controller:
         )
         return self._finish(cmd, qv, state.gravity, 0, t0, elbow.dropped)
 
+    def _level1_target(self, twist: np.ndarray, error: np.ndarray, state: TickState) -> np.ndarray:
+        """Level 1's ``J q̇ = v + K_p e − ½dt·J̇q̇`` (m/s, rad/s; as :func:`qpnso.tick.qp_tick`): the tool twist,
+        the capped pose correction (:func:`qpnso.tick.pose_correction`), and the step's second-order term.
+        Over a tick at q̇ the tool moves by ``dt·J q̇ + ½dt²·J̇q̇``; with J̇q̇ along the previous command
+        taken out, a null-space motion no longer drags a held tool (it did by about 1.2 µm·(|q̇|/(rad/s))²,
+        8 µm and 2e-5 rad for elbow-up's returns in the fuzz)."""
+        return twist + pose_correction(error, self._gains) - self._gains[10] * state.tool_drift
+
     def _begin(self, qv: np.ndarray) -> tuple[TickState, ElbowState, Status]:
-        """The general tick's start: ``q`` checked, the state (made safe), the elbow."""
+        """The general tick's start: ``q`` checked, the state (made safe; drift along the previous
+        command), the elbow."""
         status = self._check_input(qv)
-        state = self.evaluate(qv)
+        state = self.evaluate(qv, self._dq_prev)
         if state.flags:
             status |= _status(state.flags)
         elbow = self._elbow(state)
@@ -470,7 +459,7 @@ class Controller:
         and :func:`qpnso.tick.qp_tick_answer` (checks, command, torque): the general path's answer to
         round-off.  Returns the Command; or, when the line fast path does not apply, ``(state, elbow,
         status)`` for the general path to go on from; or None when nothing was done (singular arm angle)."""
-        flat = self.evaluate.raw(qv)
+        flat = self.evaluate.raw(qv, self._dq_prev)
         t1 = time.perf_counter()
         buf, stale = self._line, False
         tick, t_interval = self._qp_tick(qv, flat, twist, True), 0.0
@@ -509,7 +498,8 @@ class Controller:
         t2 = time.perf_counter()
         cmd = Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, Status.OK,
                       t2 - t1 - t_interval, 0.0, (e_pos, e_rot), message)
-        return self._finish(cmd, qv, flat[self.evaluate.offsets[9]:], bits, t0, False)
+        o = self.evaluate.offsets
+        return self._finish(cmd, qv, flat[o[9]:o[10]], bits, t0, False)
 
     def _qp_tick(self, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool) -> tuple:
         """:func:`qpnso.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""

@@ -2,8 +2,10 @@
 
 One compiled CasADi function evaluates, from ``q`` alone, the tool pose, the
 tool Jacobian, the weighted cost and its exact gradient, the arm angle with its
-exact gradient and singularity measures, and the dynamics a torque command needs
-(``A(q)``, ``g(q)``): one call per tick instead of seven (:class:`StateEvaluator`).
+exact gradient and singularity measures, the dynamics a torque command needs
+(``A(q)``, ``g(q)``), and the tool's second-order motion ``J̇(q, q̇)q̇`` along the
+previous command (level 1's second-order term): one call per tick instead of
+eight (:class:`StateEvaluator`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ class TickState:
     pose: np.ndarray  # (12,) rotation entries (column-major) then position (m): for cheap comparisons
     mass_matrix: np.ndarray  # (nq, nq) A(q), kg·m² (Pinocchio's crba)
     gravity: np.ndarray  # (nq,) g(q), N·m (Pinocchio's computeGeneralizedGravity)
+    tool_drift: np.ndarray  # (6,) J̇(q, q̇)q̇ at the q̇ given (m/s², rad/s²; world-aligned, tool point)
     flags: int = 0  # status bits of qpnso.tick.sanitize_state: what was not finite and made safe
 
 
@@ -53,11 +56,16 @@ class StateEvaluator:
         tool = sym.frame_placement(robot.tool_frame_id)
         ns, measures = arm_angle_expression(sym, elbow_points(robot))
         total = cost.expression
-        parts = [tool.R, tool.p, sym.frame_jacobian(robot.tool_frame_id), total, ca.gradient(total, sym.q), ns,
-                 ca.gradient(ns, sym.q), measures, sym.mass_matrix(), sym.gravity_torque()]
+        J = sym.frame_jacobian(robot.tool_frame_id)
+        dq = ca.SX.sym("dq", robot.nq)
+        drift = ca.jtimes(ca.mtimes(J, dq), sym.q, dq)  # J̇(q, q̇)q̇ = ∂(J q̇)/∂q · q̇ (forward mode)
+        parts = [tool.R, tool.p, J, total, ca.gradient(total, sym.q), ns, ca.gradient(ns, sym.q), measures,
+                 sym.mass_matrix(), sym.gravity_torque(), drift]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
-        self._fn = FastFunction(sym.function(f"tick_{robot.name}", {"state": stacked}), compile)
+        self._zero_velocity = np.zeros(robot.nq)
+        self._fn = FastFunction(ca.Function(f"tick_{robot.name}", [sym.q, dq], [stacked], ["q", "dq"], ["state"]),
+                                compile)
         self.offsets = np.cumsum([0] + [part.numel() for part in parts])
         """Start of each part in the stacked vector, and its length at the end (in the order of
         :func:`state_views`)."""
@@ -66,14 +74,14 @@ class StateEvaluator:
         """Block until compiled code is used (benchmarks call this)."""
         return self._fn.wait(timeout)
 
-    def __call__(self, q: np.ndarray) -> TickState:
-        """State at ``q`` (rad; assumed validated by the caller)."""
-        return self.state(q, self._fn.flat(q))
+    def __call__(self, q: np.ndarray, dq: np.ndarray | None = None) -> TickState:
+        """State at ``q`` (rad; assumed validated by the caller), the drift along ``dq`` (rad/s; None: 0)."""
+        return self.state(q, self._fn.flat(q, self._zero_velocity if dq is None else dq))
 
-    def raw(self, q: np.ndarray) -> np.ndarray:
-        """The stacked state at ``q`` (rad, validated by the caller) in the evaluator's own buffer:
-        read it before the next call, which overwrites it (the compiled tick's in-place read)."""
-        return self._fn.evaluate_in_place(q)
+    def raw(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """The stacked state at ``q`` (rad) and ``dq`` (rad/s; validated by the caller) in the evaluator's
+        own buffer: read it before the next call, which overwrites it (the compiled tick's in-place read)."""
+        return self._fn.evaluate_in_place(q, dq)
 
     def state(self, q: np.ndarray, flat: np.ndarray) -> TickState:
         """The :class:`TickState` of a stacked state ``flat`` (views of it) at ``q``, made safe first
@@ -82,18 +90,18 @@ class StateEvaluator:
         from qpnso.tick import sanitize_state
 
         flags = sanitize_state(flat, self.offsets)
-        R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, A, g = state_views(flat, self.offsets)
-        return TickState(q, R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, flat[:12], A, g, flags)
+        R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, A, g, drift = state_views(flat, self.offsets)
+        return TickState(q, R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, flat[:12], A, g, drift, flags)
 
 
 @njit(cache=True)
 def state_views(flat, offsets):  # type: ignore[no-untyped-def]
     """The stacked state cut at ``offsets`` (:attr:`StateEvaluator.offsets`): ``(R, p, J, c, ∇c, ns, ∇ns,
-    wrist_sin, elbow_offset, A, g)``, arrays as views (column-major parts: F-ordered), scalars as floats."""
+    wrist_sin, elbow_offset, A, g, J̇q̇)``, arrays as views (column-major parts: F-ordered), scalars as floats."""
     o = offsets
     n = o[5] - o[4]
     R = flat[o[0]:o[1]].reshape((3, 3)).T
     J = flat[o[2]:o[3]].reshape((n, 6)).T
     A = flat[o[8]:o[9]].reshape((n, n)).T
     return (R, flat[o[1]:o[2]], J, flat[o[3]], flat[o[4]:o[5]], flat[o[5]], flat[o[6]:o[7]], flat[o[7]],
-            flat[o[7] + 1], A, flat[o[9]:o[10]])
+            flat[o[7] + 1], A, flat[o[9]:o[10]], flat[o[10]:o[11]])

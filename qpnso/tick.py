@@ -28,7 +28,8 @@ import math
 import numpy as np
 from numba import njit
 
-from qpnso.hqp import LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, task_line
+from qpnso.hqp import (LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, qp_data_finite,
+                       task_line)
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, matvec, nullspace_part
 from qpnso.rom import clipped_bounds, sigmoid_stiffness
 from qpnso.state import state_views
@@ -47,6 +48,9 @@ TICK_ELBOW_DROPPED = 5
 TICK_STATE_NOT_FINITE = 7
 """A code of :func:`qp_tick`: the state at a finite ``q`` is not finite (:func:`sanitize_state`); nothing
 was done (the caller stops the joints)."""
+TICK_QP_NOT_FINITE = 8
+"""A code of :func:`qp_tick`: the level-2 line QP is not finite; the elbow advanced, the general path goes on
+(and refuses that QP)."""
 TICK_NEED_INTERVAL = 6
 """A code of :func:`qp_tick`: the elbow memory advanced and the continuity interval must be recomputed
 (:func:`store_interval`), then :func:`qp_tick` called again with ``advance`` False."""
@@ -355,7 +359,7 @@ def qp_torque(A, gravity, J, dq_cmd, dq_meas, stiffness, dt, damping):  # type: 
 def qp_command(flat, offsets, q, dq, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
     """The ``qp`` strategy's command for the velocity ``dq`` (rad/s): ``(q_des = q + dt·dq`` rad,
     ``τ`` N·m of :func:`qp_torque`), with A(q), g(q) and J from the stacked state ``flat``."""
-    _, _, J, _, _, _, _, _, _, A, gravity = state_views(flat, offsets)
+    _, _, J, _, _, _, _, _, _, A, gravity, _ = state_views(flat, offsets)
     return q + dt * dq, qp_torque(A, gravity, J, dq, dq_meas, stiffness, dt, damping)
 
 
@@ -369,7 +373,8 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     dq_max (rad/s); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
     ROM centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
     ``gains`` = (pose gain K_p 1/s, joint-limit gain 1/s, cost gain, null-space speed max rad/s, filter α,
-    elbow gain 1/s, slack scale 1/√(2ρ), recovery speed rad/s, pose correction's speed caps m/s and rad/s); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ);
+    elbow gain 1/s, slack scale 1/√(2ρ), recovery speed rad/s, pose correction's speed caps m/s and rad/s,
+    ½dt s); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ);
     ``identity`` (n, n) level 2's Hessian.
 
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`), the arm angle's singularity
@@ -390,7 +395,8 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     unsafe = sanitize_state(flat, offsets)
     if unsafe & FLAG_INTERNAL_ERROR:
         return (TICK_STATE_NOT_FINITE,) + nothing[1:]
-    R, p, J, cost, cost_gradient, ns_wrapped, ns_gradient, wrist_sin, elbow_offset, _, _ = state_views(flat, offsets)
+    R, p, J, cost, cost_gradient, ns_wrapped, ns_gradient, wrist_sin, elbow_offset, _, _, drift = \
+        state_views(flat, offsets)
     if arm_angle_singular(wrist_sin, elbow_offset, elbow):
         return (TICK_ELBOW_DROPPED,) + nothing[1:]
     if advance:
@@ -405,7 +411,7 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     e_rot = math.sqrt(e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
     if not ok:
         return LINE_NO_POSE, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, 0.0, cost, bits
-    b1 = twist + pose_correction(e, gains)
+    b1 = twist + pose_correction(e, gains) - gains[10] * drift  # second-order term (Controller.step)
     rank_tol, damping, reg = qp_tol[0], qp_tol[1], qp_tol[2]
     lb, ub = velocity_bounds(q, limits[2], limits[3], limits[4], gains[1], gains[7])
     code, x0, d, t_lo, t_hi = task_line(J, b1, lb, ub, rank_tol, damping)
@@ -418,6 +424,8 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     H[:], g[:], C[:], l[:], u[:], box_l[:], box_u[:], _ = line_qp_arrays(
         d, x0, t_lo, t_hi, np.zeros((0, n)), np.zeros(0), identity, step, ns_gradient.reshape(1, n), lo, hi,
         1, gains[6], reg, rank_tol, damping)
+    if not qp_data_finite(H, g, C, l, u, box_l, box_u):  # (a huge finite twist can overflow)
+        return TICK_QP_NOT_FINITE, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, 0.0, cost, bits
     line[0], line[1], line[2] = x0, d, x1
     return LINE_OK, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, math.sqrt(dot(r, r)), cost, bits
 

@@ -48,6 +48,14 @@ def test_every_field_matches_its_independent_computation(evaluator, rng) -> None
         np.testing.assert_allclose(s.arm_angle_gradient, E.arm_angle_gradient(robot, q), atol=1e-9)
         assert (s.wrist_sin, s.elbow_offset) == pytest.approx((elbow.wrist_sin, elbow.elbow_offset_m), abs=1e-12)
         np.testing.assert_array_equal(s.pose, np.r_[s.tool_rotation.ravel(order="F"), s.tool_position])
+        np.testing.assert_array_equal(s.tool_drift, np.zeros(6))  # no velocity given
+        dq = rng.normal(size=7)
+        moving = evaluator(q, dq)
+        pin.forwardKinematics(robot.model, data, q, dq, np.zeros(7))  # J̇q̇: the classical acceleration at q̈ = 0
+        a = pin.getFrameClassicalAcceleration(robot.model, data, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED)
+        np.testing.assert_allclose(moving.tool_drift, a.vector, atol=1e-12)
+        jac = [robot.jacobian(q + t * dq) for t in (1e-6, -1e-6)]
+        np.testing.assert_allclose(moving.tool_drift, (jac[0] - jac[1]) @ dq / 2e-6, atol=1e-7)  # central difference
 
 
 def test_fields_are_views_of_one_array_and_raw_is_the_same_state(evaluator) -> None:
@@ -56,11 +64,11 @@ def test_fields_are_views_of_one_array_and_raw_is_the_same_state(evaluator) -> N
     base = s.pose.base
     for field in (s.tool_rotation, s.tool_position, s.jacobian, s.mass_matrix, s.gravity, s.cost_gradient):
         assert np.shares_memory(field, base)
-    flat = evaluator.raw(q)
+    flat = evaluator.raw(q, np.zeros(7))
     assert flat.shape == (evaluator.offsets[-1],)
     again = evaluator.state(q, flat.copy())
     for a, b in ((s.jacobian, again.jacobian), (s.mass_matrix, again.mass_matrix), (s.gravity, again.gravity)):
         np.testing.assert_array_equal(a, b)
-    assert flat is evaluator.raw(q + 0.01)  # the evaluator's buffer, overwritten by the next call
+    assert flat is evaluator.raw(q + 0.01, np.zeros(7))  # the evaluator's buffer, overwritten by the next call
     views = state_views(flat, evaluator.offsets)
     assert len(views) == len(evaluator.offsets)  # ten parts; the two singularity measures come apart

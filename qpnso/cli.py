@@ -414,9 +414,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         from qpnso.solver_bench import run_solver_benchmark
 
-        report = run_solver_benchmark(Path(args.out), quick=args.quick, progress=None if args.quiet else print)
+        report = run_solver_benchmark(Path(args.out or "solver-bench"), quick=args.quick,
+                                      progress=None if args.quiet else print)
         print(report.read_text())
         return 0
+    if args.what == "fuzz":
+        return bench_fuzz(args)
     robot = load_cli_robot(args, redundant=args.what != "cost")
     if args.what == "cost":
         rows = benchmark.bench_cost(robot, n=args.n)
@@ -430,6 +433,26 @@ def cmd_bench(args: argparse.Namespace) -> int:
         title = f"Controller.step, {robot.name}, dt = 1 ms"
     print(benchmark.table(rows, title))
     return 0
+
+
+def bench_fuzz(args: argparse.Namespace) -> int:
+    """``qpnso bench fuzz -n N``: N fuzzed closed-loop ticks (qpnso/fuzz.py); the Markdown table, the report
+    as JSON with ``--out``; exit status 1 if a must-hold check fails."""
+    from qpnso.controller import STRATEGIES
+    from qpnso.fuzz import FuzzConfig, run_fuzz
+
+    offset = parse_vector(args.tool_offset, 3, "--tool-offset") if args.tool_offset else (0.0, 0.0, 0.1)
+    strategies = tuple(x.strip() for x in args.strategies.split(",") if x.strip()) if args.strategies else STRATEGIES
+    config = FuzzConfig(seed=args.seed, ticks=args.n, strategies=strategies, robot=args.robot,
+                        tool_frame=args.tool_frame, tool_offset=tuple(offset))
+    report = run_fuzz(config, progress=progress_bar(not args.quiet, "fuzz"))
+    if args.out:
+        write_json(args.out, report.to_dict())
+    print(report.table())
+    failures = report.failures()
+    for line in failures:
+        print(f"FAIL: {line}")
+    return 1 if failures else 0
 
 
 # ------------------------------------------------------------------- parser
@@ -514,12 +537,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("bench", help="time the cost evaluation or the control tick (median, p99)")
-    p.add_argument("what", choices=["cost", "interval", "tick", "solvers"])
+    p.add_argument("what", choices=["cost", "interval", "tick", "solvers", "fuzz"])
     add_robot_arguments(p)
-    p.add_argument("-n", type=int, default=3000, help="timed calls per row (default 3000)")
-    p.add_argument("--strategies", default=None, help="comma-separated strategies for 'tick' (default all)")
+    p.add_argument("-n", type=int, default=3000, help="timed calls per row; fuzz: ticks (default 3000)")
+    p.add_argument("--strategies", default=None, help="comma-separated strategies for 'tick', 'fuzz' (default all)")
+    p.add_argument("--seed", type=int, default=0, help="fuzz: random seed (default 0)")
     p.add_argument("--quick", action="store_true", help="solvers: the small committed problem set (< 1 min)")
-    p.add_argument("--out", default="solver-bench", help="solvers: folder for report.md, results.csv, figure")
+    p.add_argument("--out", default=None, help="solvers: folder for report.md, results.csv, figure "
+                   "(default solver-bench); fuzz: the report as JSON")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=cmd_bench)
     return parser

@@ -962,9 +962,10 @@ class _ProxSuiteBackend:
         persistent object of level ``k`` and this shape, warm-started.
 
         The budget is in iterations, so that answers do not depend on the machine's load: ProxQP's
-        ``max_iter`` × ``max_iter_in`` per attempt (it cannot be interrupted on time), a failed warm
-        solve retried cold, then, if ``active_set_fallback``, DAQP (:func:`active_set_solve`, at most
-        ``max_iter_active_set`` iterations; counted in ``stats.active_set_fallbacks``).  The data are
+        ``max_iter`` × ``max_iter_in`` (it cannot be interrupted on time), then, if ``active_set_fallback``,
+        DAQP (:func:`active_set_solve`, at most ``max_iter_active_set`` iterations; counted in
+        ``stats.active_set_fallbacks``), and the next tick's ProxQP starts cold; without the fallback a
+        failed warm solve is retried cold at once.  The data are
         finite (:func:`finite_data_raw` refuses others first)."""
         box = box_l is not None
         if C.shape[0]:
@@ -985,7 +986,8 @@ class _ProxSuiteBackend:
         obj.solve()
         settings, results, info = entry.settings, entry.results, entry.info
         out = info.status
-        if out is not self._solved and settings.initial_guess == self._warm:
+        fallback = self._settings.active_set_fallback
+        if out is not self._solved and settings.initial_guess == self._warm and not fallback:
             self._stats.cold_retries += 1  # a warm start can fail where a cold one does not (measured)
             settings.initial_guess = self._cold
             obj.init(**data)  # same object; resets its adapted penalties too
@@ -998,7 +1000,7 @@ class _ProxSuiteBackend:
         if out is self._solved:
             return _Raw(results.x.copy(), LevelStatus.SOLVED, info.iter, message)  # results.x is a view: copied
         status = self._status.get(out, LevelStatus.SOLVER_ERROR)
-        if not self._settings.active_set_fallback:
+        if not fallback:
             return _Raw(None, status, info.iter, message)
         self._stats.active_set_fallbacks += 1
         raw = active_set_solve(H, g, C, lo, hi, box_l, box_u, self._settings.max_iter_active_set)

@@ -53,9 +53,9 @@ from qpnso.state import StateEvaluator, TickState
 from qpnso.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
                          FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED,
                          FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, FLAG_TORQUE_SATURATED, LINE_OK, NS,
-                         P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE,
+                         IV_KNOWN, P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE,
                          TICK_STATE_NOT_FINITE, LineTickBuffers, answer_bits, arm_angle_singular, elbow_advance,
-                         elbow_bounds, elbow_memory, elbow_parameters, finish_command, limits_status, pose_correction,
+                         elbow_bounds, elbow_memory, elbow_parameters, finish_command, interval_failed, limits_status, pose_correction,
                          pose_error,
                          qp_command, qp_tick, qp_tick_answer, store_interval, velocity_bounds)
 
@@ -401,8 +401,8 @@ class Controller:
         """Every tick's last step (:func:`qpnso.tick.finish_command`): τ within the effort limits, an
         arm angle outside ROM_t flagged, a non-finite command replaced by the stop command; the status
         and the tick time set."""
-        bits |= finish_command(qv, cmd.dq, cmd.q_des, cmd.tau, gravity, self._tau_limit, cmd.arm_angle,
-                               cmd.rom[0], cmd.rom[1], dropped)
+        bits |= finish_command(qv, cmd.dq, cmd.q_des, cmd.tau, gravity, self._tau_limit, self.robot.dq_max,
+                               self.config.dt, cmd.arm_angle, cmd.rom[0], cmd.rom[1], dropped)
         if bits & FLAG_INTERNAL_ERROR and not cmd.message:
             cmd.message = "the command was not finite: joints stopped"
         cmd.status = cmd.status | _status(bits) if bits else cmd.status
@@ -473,7 +473,7 @@ class Controller:
             as_vector(qv, self.robot.nq, "q")  # raises, naming the entries
         if code == TICK_ELBOW_DROPPED or code == TICK_STATE_NOT_FINITE:
             return None  # the general path drops the elbow, or stops the joints
-        if stale:
+        if stale or self._elbow_memory[IV_KNOWN] != 1.0:  # unknown, or its renewal failed
             bits |= FLAG_INTERVAL_STALE
         if code != LINE_OK:
             elbow = ElbowState(ns, (rom_lo, rom_hi), (iv_lo, iv_hi), k, _status(bits & _ELBOW_BITS))
@@ -550,7 +550,7 @@ class Controller:
             k = float(stiffness(ns, self.ns0, self.elbow_config))
             return ElbowState(ns, (ns, ns), (ns - np.pi, ns + np.pi), k, Status.ELBOW_DROPPED, dropped=True)
         ns, recompute = elbow_advance(state.arm_angle, state.pose, memory, params[P_PERIOD], params[P_MOVED_TOL])
-        stale = self._update_interval(state.q, state.pose) if recompute else False
+        stale = self._update_interval(state.q, state.pose) if recompute else memory[IV_KNOWN] != 1.0
         lo, hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, self.ns0, params)
         bits = (FLAG_INTERVAL_STALE if stale else 0) | (FLAG_ROM_EMPTY if empty else 0)
         return ElbowState(ns, (lo, hi), (iv_lo, iv_hi), k, _status(bits))
@@ -561,6 +561,7 @@ class Controller:
         try:
             interval = continuity_interval(self.robot, q)
         except QpnsoError:
+            interval_failed(self._elbow_memory)
             return True
         store_interval(self._elbow_memory, interval.lo, interval.hi, interval.full_circle, pose)
         return False

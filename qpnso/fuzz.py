@@ -428,7 +428,8 @@ class TickChecker:
         j = int(np.argmax(over))
         if over[j] > self.config.joint_tol:
             self.report.record("velocity", abs(dq[j]) / self.dq_max[j], where, inputs,
-                               f"joint {j + 1}: dq {dq[j]:.6g} rad/s, limit {self.dq_max[j]:.6g}; status {cmd.status}")
+                               f"joint {j + 1}: dq {dq[j]:.9g} rad/s, limit {self.dq_max[j]:.9g} (over by "
+                               f"{over[j]:.3g}); status {cmd.status}")
 
     def _limits(self, q: np.ndarray, q_next: np.ndarray, what: str, cmd: Command, where: Where,
                 inputs: dict) -> bool:
@@ -530,8 +531,9 @@ class Recovery:
 
 def closing(pending: Recovery, error_m: float, speed: float, dt: float) -> bool:
     """Whether the tool error (m) shrank by at least half of what the capped pose correction can do in a tick
-    (``ControllerConfig.pose_correction_speed``): a large error returns at that speed, by design."""
-    return error_m <= pending.last_error - 0.5 * speed * dt
+    (``ControllerConfig.pose_correction_speed``): a large error returns at that speed, by design.  False on the
+    first tick after the disturbance (no previous error to compare with: not evidence of closing)."""
+    return math.isfinite(pending.last_error) and error_m <= pending.last_error - 0.5 * speed * dt
 
 
 def update_recovery(pending: Recovery | None, tick: int, cmd: Command | None, error_m: float,
@@ -957,11 +959,11 @@ class Episode:
         cfg = self.config
         size = int(self.rng.integers(1, cfg.probe_burst_max + 1))
         kinds = [cfg.probe_kinds[int(i)] for i in self.rng.integers(len(cfg.probe_kinds), size=size)]
-        for kind in kinds:
-            probe = make_probe(kind, self.rng, self.q, self.dq, self.checker.robot, cfg)
-            send_probe(self.ctrl, probe, self.checker, self.where)
+        outcomes = [send_probe(self.ctrl, make_probe(kind, self.rng, self.q, self.dq, self.checker.robot, cfg),
+                               self.checker, self.where) for kind in kinds]
         what = f"bad inputs {','.join(kinds)} before tick {self.tick}"
-        self.hold.glitch()
+        if "accepted" in outcomes:  # the controller acted on a q the plant never had; a refused one must not count
+            self.hold.glitch()
         if self.pending is None:
             self._disturbed(what, self.recovered)
         else:  # already recovering from another disturbance: that one's clock runs on

@@ -222,8 +222,9 @@ def sanitize_state(flat, offsets):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def finish_command(q, dq, q_des, tau, gravity, tau_limit, ns, rom_lo, rom_hi, dropped):  # type: ignore[no-untyped-def]
-    """The last step of every tick, in place: the torque saturated at the model's effort limits
+def finish_command(q, dq, q_des, tau, gravity, tau_limit, dq_max, dt, ns, rom_lo, rom_hi, dropped):  # type: ignore[no-untyped-def]
+    """The last step of every tick, in place: dq within ``±dq_max`` (a QP answer may exceed a bound by its
+    feasibility tolerance; q_des follows), the torque saturated at the model's effort limits
     (``TORQUE_SATURATED``; a limit ≤ 0 means none given), an arm angle outside ROM_t flagged
     (``ELBOW_OUTSIDE_ROM``, unless the elbow is dropped), and a command that is not finite replaced
     by the stop command (dq 0, q_des = q, τ = g(q), ``INTERNAL_ERROR``).  Returns the bits."""
@@ -238,6 +239,10 @@ def finish_command(q, dq, q_des, tau, gravity, tau_limit, ns, rom_lo, rom_hi, dr
         for i in range(tau.shape[0]):
             tau[i] = gravity[i] if math.isfinite(gravity[i]) else 0.0
         bits |= FLAG_INTERNAL_ERROR
+    for i in range(dq.shape[0]):
+        if abs(dq[i]) > dq_max[i]:
+            dq[i] = dq_max[i] if dq[i] > 0.0 else -dq_max[i]
+            q_des[i] = q[i] + dt * dq[i]
     for i in range(tau.shape[0]):
         limit = tau_limit[i]
         if limit > 0.0 and abs(tau[i]) > limit:
@@ -258,15 +263,26 @@ def qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping):  # type: ignor
 # The elbow's state across ticks, one array (elbow_memory) that the kernels read and advance:
 NS, IV_LO, IV_HI, IV_FULL, IV_KNOWN, IV_AGE, IV_POSE = 0, 1, 2, 3, 4, 5, 6
 """Indices: the last arm angle (rad, unwrapped along the run); the cached continuity interval (rad,
-around that angle), full circle (1/0), known (1/0), its age (ticks), and from IV_POSE the 12 entries
+around that angle), full circle (1/0), known (1; 2: known but its renewal failed, stale; 0: none), its age
+(ticks), and from IV_POSE the 12 entries
 of the tool pose (:attr:`qpnso.state.TickState.pose`) it was computed at."""
 
 
 def elbow_memory(ns: float) -> np.ndarray:
-    """A fresh elbow memory at arm angle ``ns`` (rad): no interval known."""
+    """A fresh elbow memory at arm angle ``ns`` (rad): no interval known (computed at the first tick)."""
     memory = np.zeros(IV_POSE + 12)
     memory[NS] = ns
+    memory[IV_AGE] = math.inf
     return memory
+
+
+def interval_failed(memory: np.ndarray) -> None:
+    """The continuity interval could not be computed: the one cached (or, before any, the full circle)
+    stands, marked stale (``IV_KNOWN`` 2), and the next attempt comes ``period`` ticks later (a failing
+    attempt costs about 1 ms: one per tick stalled every tick near a singularity)."""
+    if memory[IV_KNOWN] != 0.0:
+        memory[IV_KNOWN] = 2.0
+    memory[IV_AGE] = 0.0
 
 
 def store_interval(memory: np.ndarray, lo: float, hi: float, full_circle: bool, pose: np.ndarray) -> None:
@@ -298,13 +314,14 @@ def arm_angle_singular(wrist_sin, elbow_offset, params):  # type: ignore[no-unty
 @njit(cache=True)
 def elbow_advance(ns_wrapped, pose, memory, period, moved_tol):  # type: ignore[no-untyped-def]
     """One tick of the elbow memory: the arm angle unwrapped along the run (rad), the interval aged.
-    Returns ``(ns, recompute)``: whether the continuity interval must be recomputed (none known, or
-    the tool moved by more than ``moved_tol`` and the interval is ``period`` ticks old)."""
+    Returns ``(ns, recompute)``: whether the continuity interval must be recomputed (none known and the
+    last attempt ``period`` ticks old, or the tool moved by more than ``moved_tol`` and the interval is
+    ``period`` ticks old)."""
     ns = memory[NS] + (ns_wrapped - memory[NS] + math.pi) % TWO_PI - math.pi
     memory[NS] = ns
     memory[IV_AGE] += 1.0
     if memory[IV_KNOWN] == 0.0:
-        return ns, True
+        return ns, memory[IV_AGE] >= period
     fresh = memory[IV_AGE] < period or max_abs_difference(pose, memory[IV_POSE:]) <= moved_tol
     return ns, not fresh
 

@@ -136,8 +136,8 @@ class QPSettings:
     eps_rel: float = 0.0
     eps_primal_inf: float = 1e-12
     eps_dual_inf: float = 1e-12
-    max_iter: int = 10  # ProxQP's outer iterations per attempt (a tick's QP needs 2–13 in all, measured)
-    max_iter_in: int = 10  # ProxQP's inner iterations per outer one: an attempt is at most ~110 iterations
+    max_iter: int = 5  # ProxQP's outer iterations per attempt (a tick's QP needs 2–13 inner ones in all, measured)
+    max_iter_in: int = 5  # ProxQP's inner iterations per outer one: an attempt is at most ~30 iterations, then DAQP
     max_iter_active_set: int = 1000  # DAQP's iterations in the fallback (a tick's QP needs 2–10, measured)
     mu_in: float = 1e-3  # ProxQP default_mu_in: its 0.1 took 3.5 warm iterations per controller tick, 1e-3 took 2.2
     warm_start: bool = True  # ProxSuite: WARM_START_WITH_PREVIOUS_RESULT every tick
@@ -612,10 +612,10 @@ _NO_VECTOR = np.zeros(0)
 
 @functools.lru_cache(maxsize=16)
 def _no_rows(n: int) -> np.ndarray:
-    """A read-only (0, n) array: an absent matrix part passed to a kernel (cached, any width)."""
-    empty = np.zeros((0, n))
-    empty.flags.writeable = False
-    return empty
+    """A (0, n) array: an absent matrix part passed to a kernel (cached, any width).  Writable like every
+    other array the kernels get: a read-only one is another Numba type, compiled (seconds) in the first
+    tick that takes a rare path (the general path's line level with the elbow dropped did, in the fuzz)."""
+    return np.zeros((0, n))
 
 
 @dataclass(slots=True)

@@ -10,6 +10,7 @@ eight (:class:`StateEvaluator`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import casadi as ca
@@ -39,7 +40,7 @@ class TickState:
     mass_matrix: np.ndarray  # (nq, nq) A(q), kg·m² (Pinocchio's crba)
     gravity: np.ndarray  # (nq,) g(q), N·m (Pinocchio's computeGeneralizedGravity)
     tool_drift: np.ndarray  # (6,) J̇(q, q̇)q̇ at the q̇ given (m/s², rad/s²; world-aligned, tool point)
-    flags: int = 0  # status bits of qpnso.tick.sanitize_state: what was not finite and made safe
+    flags: int = 0  # status bits of sanitize_state: what was not finite and made safe
 
 
 class StateEvaluator:
@@ -85,10 +86,8 @@ class StateEvaluator:
 
     def state(self, q: np.ndarray, flat: np.ndarray) -> TickState:
         """The :class:`TickState` of a stacked state ``flat`` (views of it) at ``q``, made safe first
-        (:func:`qpnso.tick.sanitize_state`, in place: an undefined cost is 0, an undefined arm angle
+        (:func:`sanitize_state`, in place: an undefined cost is 0, an undefined arm angle
         singular; :attr:`TickState.flags` says so)."""
-        from qpnso.tick import sanitize_state
-
         flags = sanitize_state(flat, self.offsets)
         R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, A, g, drift = state_views(flat, self.offsets)
         return TickState(q, R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, flat[:12], A, g, drift, flags)
@@ -105,3 +104,34 @@ def state_views(flat, offsets):  # type: ignore[no-untyped-def]
     A = flat[o[8]:o[9]].reshape((n, n)).T
     return (R, flat[o[1]:o[2]], J, flat[o[3]], flat[o[4]:o[5]], flat[o[5]], flat[o[6]:o[7]], flat[o[7]],
             flat[o[7] + 1], A, flat[o[9]:o[10]], flat[o[10]:o[11]])
+
+
+COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT = 128, 2048
+"""Status bits of :func:`sanitize_state` (``qpnso.tick.FLAG_COST_UNDEFINED``, ``FLAG_INTERNAL_ERROR``)."""
+
+
+@njit(cache=True)
+def sanitize_state(flat, offsets):  # type: ignore[no-untyped-def]
+    """Make a stacked state (:func:`qpnso.state.state_views`) safe to act on, in place; returns status
+    bits.  A cost or cost gradient that is not finite (the tool Jacobian singular: Λ undefined) is set
+    to 0 (``COST_UNDEFINED``: no cost step this tick); an arm angle or gradient that is not finite marks
+    the arm angle singular (its sine measure set to 0: the elbow rows are dropped).  Anything else not
+    finite (pose, J, A, g) is ``INTERNAL_ERROR``: the caller must not act on it."""
+    o = offsets
+    bits = 0
+    for i in range(o[3], o[5]):
+        if not math.isfinite(flat[i]):
+            flat[o[3]:o[5]] = 0.0
+            bits |= COST_UNDEFINED_BIT
+            break
+    for i in range(o[5], o[8]):
+        if not math.isfinite(flat[i]):
+            flat[o[5]:o[8]] = 0.0  # wrist sine 0: singular
+            break
+    for i in range(o[0], o[3]):
+        if not math.isfinite(flat[i]):
+            return bits | INTERNAL_ERROR_BIT
+    for i in range(o[8], o[10]):
+        if not math.isfinite(flat[i]):
+            return bits | INTERNAL_ERROR_BIT
+    return bits

@@ -32,7 +32,7 @@ from qpnso.hqp import (LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_
                        task_line)
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, matvec, nullspace_part
 from qpnso.rom import clipped_bounds, sigmoid_stiffness
-from qpnso.state import state_views
+from qpnso.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state, state_views
 
 LOG3_MAX_ANGLE = math.pi - 1e-3
 """rad: :func:`pose_error` reports (``ok`` False) a rotation error closer to π than this, where
@@ -58,8 +58,8 @@ TICK_NEED_INTERVAL = 6
 # Status bits (qpnso.controller.Status has the same values)
 FLAG_QP_FAILED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_ROM_EMPTY = 1, 2, 4, 8
 FLAG_Q_OUT_OF_LIMITS, FLAG_INTERVAL_STALE, FLAG_TOOL_LIMITED = 16, 32, 64
-FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = 128, 256, 512, 1024
-FLAG_INTERNAL_ERROR = 2048
+FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = COST_UNDEFINED_BIT, 256, 512, 1024
+FLAG_INTERNAL_ERROR = INTERNAL_ERROR_BIT
 
 TOOL_RESIDUAL_REPORTED = 1e-6
 """m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
@@ -191,33 +191,6 @@ def answer_bits(tool_residual, slack_max):  # type: ignore[no-untyped-def]
         bits |= FLAG_TOOL_LIMITED
     if slack_max > ELBOW_SLACK_REPORTED:
         bits |= FLAG_ELBOW_SLACK
-    return bits
-
-
-@njit(cache=True)
-def sanitize_state(flat, offsets):  # type: ignore[no-untyped-def]
-    """Make a stacked state (:func:`qpnso.state.state_views`) safe to act on, in place; returns status
-    bits.  A cost or cost gradient that is not finite (the tool Jacobian singular: Λ undefined) is set
-    to 0 (``COST_UNDEFINED``: no cost step this tick); an arm angle or gradient that is not finite marks
-    the arm angle singular (its sine measure set to 0: the elbow rows are dropped).  Anything else not
-    finite (pose, J, A, g) is ``INTERNAL_ERROR``: the caller must not act on it."""
-    o = offsets
-    bits = 0
-    for i in range(o[3], o[5]):
-        if not math.isfinite(flat[i]):
-            flat[o[3]:o[5]] = 0.0
-            bits |= FLAG_COST_UNDEFINED
-            break
-    for i in range(o[5], o[8]):
-        if not math.isfinite(flat[i]):
-            flat[o[5]:o[8]] = 0.0  # wrist sine 0: singular
-            break
-    for i in range(o[0], o[3]):
-        if not math.isfinite(flat[i]):
-            return bits | FLAG_INTERNAL_ERROR
-    for i in range(o[8], o[10]):
-        if not math.isfinite(flat[i]):
-            return bits | FLAG_INTERNAL_ERROR
     return bits
 
 

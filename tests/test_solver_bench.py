@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -74,7 +75,10 @@ SOLVERS = ["proxsuite", "daqp", "quadprog", "no_such_solver"]
 
 
 def test_runner_solves_the_hand_qp_and_skips_unknown_solvers():
-    outcomes, skipped = sb.run_problems([hand_qp()], SOLVERS)
+    # the time limit is the benchmark's verdict, not this test's: a cold first call on a loaded CI machine
+    # once took 12.9 ms (no timing assertions in tests)
+    untimed = [replace(s, time_limit_s=math.inf) for s in (sb.DEFAULT, sb.HIGH_ACCURACY)]
+    outcomes, skipped = sb.run_problems([hand_qp()], SOLVERS, untimed)
     assert "no_such_solver" in skipped
     ran = {o.solver for o in outcomes}
     assert "no_such_solver" not in ran and len(ran) >= 2

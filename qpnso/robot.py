@@ -80,7 +80,7 @@ def checked_pose(pose: object, name: str) -> tuple[np.ndarray, np.ndarray]:
     for another type, a non-finite entry, or a rotation that is not orthonormal (to 1e-6)."""
     if not isinstance(pose, pin.SE3):
         raise InputError(f"{name} must be a pinocchio.SE3, got {type(pose).__name__}")
-    R, p = np.array(pose.rotation), np.array(pose.translation)
+    R, p = np.array(pose.rotation, order="C"), np.array(pose.translation)  # C order: the tick's kernels' one type
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p))):
         raise InputError(f"{name} contains NaN or inf")
     if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:

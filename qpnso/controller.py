@@ -33,7 +33,7 @@ from __future__ import annotations
 import enum
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import pinocchio as pin
@@ -53,11 +53,11 @@ from qpnso.state import StateEvaluator, TickState
 from qpnso.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
                          FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED,
                          FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, FLAG_TORQUE_SATURATED, LINE_OK, NS,
-                         IV_KNOWN, P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE,
+                         P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE,
                          TICK_STATE_NOT_FINITE, LineTickBuffers, answer_bits, arm_angle_singular, elbow_advance,
-                         elbow_bounds, elbow_memory, elbow_parameters, finish_command, interval_failed, limits_status, pose_correction,
-                         pose_error,
-                         qp_command, qp_tick, qp_tick_answer, store_interval, velocity_bounds)
+                         elbow_bounds, elbow_memory, elbow_parameters, finish_command, interval_failed,
+                         interval_stale, limits_status, pose_correction, pose_error, qp_command, qp_tick,
+                         qp_tick_answer, store_interval, velocity_bounds)
 
 def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Status:
     """Flags of a solved tick: level 1's residual (``TOOL_LIMITED``) and the elbow rows' slack
@@ -354,7 +354,7 @@ class Controller:
         except QpnsoError:
             raise
         except Exception as exc:  # a bug must not reach the robot as a traceback: stop, say why
-            cmd = self._stop(qv, self.robot.gravity(qv), FLAG_INTERNAL_ERROR, t0,
+            cmd = self._stop(qv, self._gravity_or_zero(qv), FLAG_INTERNAL_ERROR, t0,
                              f"internal error ({type(exc).__name__}: {exc}): joints stopped")
         if self.qp.stats.active_set_fallbacks != fallbacks:
             cmd.status |= Status.QP_FALLBACK
@@ -389,12 +389,20 @@ class Controller:
         return v
 
     def _stop(self, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float, message: str) -> Command:
-        """The stop command of a tick that could not be computed: dq 0, q_des = q, τ = g(q)."""
+        """The stop command of a tick that could not be computed: dq 0, q_des = q, τ = ``gravity`` (g(q))."""
         memory = self._elbow_memory
         ns = float(memory[NS])
         cmd = Command(np.zeros(self.robot.nq), qv.copy(), np.array(gravity, dtype=float), 0.0, ns, (ns, ns),
                       (ns - math.pi, ns + math.pi), 0.0, Status.OK, 0.0, 0.0, (0.0, 0.0), message)
         return self._finish(cmd, qv, cmd.tau, bits | FLAG_QP_FAILED, t0, True)
+
+    def _gravity_or_zero(self, qv: np.ndarray) -> np.ndarray:
+        """g(q) (N·m, Pinocchio) for the stop command after an unexpected exception; zero if that fails too
+        (a second exception must not leave ``step``)."""
+        try:
+            return self.robot.gravity(qv)
+        except Exception:
+            return np.zeros(self.robot.nq)
 
     def _finish(self, cmd: Command, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float,
                 dropped: bool) -> Command:
@@ -473,7 +481,7 @@ class Controller:
             as_vector(qv, self.robot.nq, "q")  # raises, naming the entries
         if code == TICK_ELBOW_DROPPED or code == TICK_STATE_NOT_FINITE:
             return None  # the general path drops the elbow, or stops the joints
-        if stale or self._elbow_memory[IV_KNOWN] != 1.0:  # unknown, or its renewal failed
+        if stale or interval_stale(self._elbow_memory):
             bits |= FLAG_INTERVAL_STALE
         if code != LINE_OK:
             elbow = ElbowState(ns, (rom_lo, rom_hi), (iv_lo, iv_hi), k, _status(bits & _ELBOW_BITS))
@@ -550,7 +558,7 @@ class Controller:
             k = float(stiffness(ns, self.ns0, self.elbow_config))
             return ElbowState(ns, (ns, ns), (ns - np.pi, ns + np.pi), k, Status.ELBOW_DROPPED, dropped=True)
         ns, recompute = elbow_advance(state.arm_angle, state.pose, memory, params[P_PERIOD], params[P_MOVED_TOL])
-        stale = self._update_interval(state.q, state.pose) if recompute else memory[IV_KNOWN] != 1.0
+        stale = self._update_interval(state.q, state.pose) if recompute else interval_stale(memory)
         lo, hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, self.ns0, params)
         bits = (FLAG_INTERVAL_STALE if stale else 0) | (FLAG_ROM_EMPTY if empty else 0)
         return ElbowState(ns, (lo, hi), (iv_lo, iv_hi), k, _status(bits))

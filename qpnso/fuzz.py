@@ -417,18 +417,20 @@ class TickChecker:
             rep.record("non_finite", bad, where, inputs,
                        f"dq {dq.tolist()}, q_des {q_des.tolist()}, tau {tau.tolist()}, status {cmd.status}")
             return False
-        self._velocity(dq, cmd, where, inputs)
+        self._magnitude("velocity", "dq", "rad/s", dq, self.dq_max, self.config.joint_tol, cmd, where, inputs)
         if not self._limits(q, q + self.dt * dq, "q + dt·dq", cmd, where, inputs):
             self._limits(q, q_des, "q_des", cmd, where, inputs)  # one count per command
-        self._torque(tau, cmd, where, inputs)
+        self._magnitude("torque", "tau", "N·m", tau, self.tau_limit, self.config.torque_tol, cmd, where, inputs)
         return True
 
-    def _velocity(self, dq: np.ndarray, cmd: Command, where: Where, inputs: dict) -> None:
-        over = np.abs(dq) - self.dq_max
+    def _magnitude(self, key: str, name: str, unit: str, values: np.ndarray, limit: np.ndarray, tol: float,
+                   cmd: Command, where: Where, inputs: dict) -> None:
+        """``abs(values) ≤ limit + tol`` per joint; the worst excess recorded under ``key`` (× the limit)."""
+        over = np.abs(values) - limit
         j = int(np.argmax(over))
-        if over[j] > self.config.joint_tol:
-            self.report.record("velocity", abs(dq[j]) / self.dq_max[j], where, inputs,
-                               f"joint {j + 1}: dq {dq[j]:.9g} rad/s, limit {self.dq_max[j]:.9g} (over by "
+        if over[j] > tol:
+            self.report.record(key, abs(values[j]) / limit[j], where, inputs,
+                               f"joint {j + 1}: {name} {values[j]:.9g} {unit}, limit {limit[j]:.9g} (over by "
                                f"{over[j]:.3g}); status {cmd.status}")
 
     def _limits(self, q: np.ndarray, q_next: np.ndarray, what: str, cmd: Command, where: Where,
@@ -445,14 +447,6 @@ class TickChecker:
                            f"joint {j + 1}: {what} {q_next[j]:.9g} {side} by {over[j]:.3g} rad from q {q[j]:.9g} "
                            f"(limits [{self.q_min[j]:.6g}, {self.q_max[j]:.6g}]); status {cmd.status}")
         return True
-
-    def _torque(self, tau: np.ndarray, cmd: Command, where: Where, inputs: dict) -> None:
-        over = np.abs(tau) - self.tau_limit
-        j = int(np.argmax(over))
-        if over[j] > self.config.torque_tol:
-            self.report.record("torque", abs(tau[j]) / self.tau_limit[j], where, inputs,
-                               f"joint {j + 1}: tau {tau[j]:.6g} N·m, limit {self.tau_limit[j]:.6g}; "
-                               f"status {cmd.status}")
 
     # ----------------------------------------------------------------- ROM
     def rom(self, cmd: Command, previous: float | None, where: Where, inputs: dict) -> float:

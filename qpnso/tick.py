@@ -258,6 +258,12 @@ def interval_failed(memory: np.ndarray) -> None:
     memory[IV_AGE] = 0.0
 
 
+def interval_stale(memory: np.ndarray) -> bool:
+    """Whether the elbow memory holds no continuity interval, or one whose renewal failed
+    (:func:`interval_failed`): ``INTERVAL_STALE`` on every tick until a renewal succeeds."""
+    return memory[IV_KNOWN] != 1.0
+
+
 def store_interval(memory: np.ndarray, lo: float, hi: float, full_circle: bool, pose: np.ndarray) -> None:
     """Cache a continuity interval (rad) computed at the tool pose ``pose`` (12,); its age restarts."""
     memory[IV_LO], memory[IV_HI], memory[IV_FULL], memory[IV_KNOWN], memory[IV_AGE] = lo, hi, full_circle, 1.0, 0.0

@@ -271,3 +271,63 @@ def test_a_checked_pose_is_c_ordered(robot) -> None:
 
     R, p = checked_pose(tool_pose(robot, Q1), "tool_pose")
     assert R.flags.c_contiguous and p.flags.c_contiguous
+
+
+def test_finish_command_by_hand() -> None:
+    """The last step of every tick on hand values: dq clipped to ±dq_max with q_des following, τ saturated
+    (a limit of 0 means none given), the ROM excursion flagged, a NaN replaced by the stop command."""
+    from qpnso.tick import (FLAG_ELBOW_OUTSIDE_ROM, FLAG_INTERNAL_ERROR, FLAG_TORQUE_SATURATED,
+                            finish_command)
+
+    q, dq_max, tau_limit, g = np.zeros(3), np.array([1.0, 1.0, 1.0]), np.array([10.0, 0.0, 10.0]), np.ones(3)
+    dq, tau = np.array([1.5, -0.5, -2.0]), np.array([12.0, 50.0, -3.0])
+    q_des = q + 1e-3 * dq
+    bits = finish_command(q, dq, q_des, tau, g, tau_limit, dq_max, 1e-3, 0.5, -0.1, 0.1, False)
+    np.testing.assert_array_equal(dq, [1.0, -0.5, -1.0])
+    np.testing.assert_allclose(q_des, [1e-3, -0.5e-3, -1e-3], rtol=0, atol=1e-18)
+    np.testing.assert_array_equal(tau, [10.0, 50.0, -3.0])
+    assert bits == FLAG_TORQUE_SATURATED | FLAG_ELBOW_OUTSIDE_ROM
+    assert finish_command(q, dq, q_des, tau, g, tau_limit, dq_max, 1e-3, 0.5, -0.1, 0.1, True) == 0  # dropped
+    dq[1] = np.nan
+    bits = finish_command(q, dq, q_des, tau, g, tau_limit, dq_max, 1e-3, 0.0, -0.1, 0.1, False)
+    assert bits == FLAG_INTERNAL_ERROR
+    np.testing.assert_array_equal(dq, 0.0)
+    np.testing.assert_array_equal(q_des, q)
+    np.testing.assert_array_equal(tau, g)
+
+
+def test_sanitize_state_by_hand(robot, controllers) -> None:
+    """An undefined cost is zeroed and flagged, an undefined arm angle made singular (its sine 0), a
+    non-finite pose, J, A or g flagged INTERNAL_ERROR; a finite state is left alone."""
+    from qpnso.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state
+
+    ev = controllers["qp"].evaluate
+    o = ev.offsets
+    flat = ev.raw(Q1, np.zeros(7)).copy()
+    clean = flat.copy()
+    assert sanitize_state(flat, o) == 0
+    np.testing.assert_array_equal(flat, clean)
+    flat[o[4] + 2] = np.nan  # a cost-gradient entry
+    flat[o[5]] = np.inf  # the arm angle
+    assert sanitize_state(flat, o) == COST_UNDEFINED_BIT
+    np.testing.assert_array_equal(flat[o[3]:o[5]], 0.0)
+    np.testing.assert_array_equal(flat[o[5]:o[8]], 0.0)  # wrist sine 0: singular
+    np.testing.assert_array_equal(flat[:o[3]], clean[:o[3]])
+    flat[o[9]] = np.nan  # gravity
+    assert sanitize_state(flat, o) & INTERNAL_ERROR_BIT
+
+
+def test_an_unexpected_exception_stops_the_joints_and_says_why(robot, monkeypatch) -> None:
+    ctrl = Controller(robot, ControllerConfig(strategy="damped"))
+    ctrl.reset(Q1)
+
+    def broken(*args):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(ctrl.strategy, "nullspace_torque", broken)
+    cmd = ctrl.step(Q1)  # no traceback reaches the caller
+    assert cmd.status & Status.INTERNAL_ERROR and not cmd.ok and "RuntimeError: boom" in cmd.message
+    np.testing.assert_array_equal(cmd.dq, 0.0)
+    np.testing.assert_array_equal(cmd.q_des, Q1)
+    np.testing.assert_allclose(cmd.tau, pin.computeGeneralizedGravity(robot.model, robot.model.createData(), Q1),
+                               atol=1e-9)

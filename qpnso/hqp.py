@@ -102,7 +102,7 @@ from numba import njit
 from scipy.linalg import lapack as _lapack
 
 from qpnso.errors import ConfigError, InputError, SolverError
-from qpnso.linalg import dot, least_norm_line, matvec
+from qpnso.linalg import dot, least_norm_line, matmul, matvec
 
 __all__ = [
     "Cascade",
@@ -151,6 +151,7 @@ class QPSettings:
     active_tol: float = 1e-7  # a higher level's bound/row this close to its answer is active below
     line_fast_path: bool = True  # a full-rank (n−1)-row first task: its exact solutions form a line (module doc)
     active_set_fallback: bool = True  # a failed ProxQP solve is handed to DAQP (active set, exact)
+    active_set_hold: int = 100  # after a fallback, DAQP alone answers that QP's next solves (0: ProxQP every time)
     solver_options: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -167,6 +168,8 @@ class QPSettings:
         for name in ("max_iter", "max_iter_in", "max_iter_active_set"):
             if getattr(self, name) <= 0:
                 raise out_of_range(self, name, "must be > 0")
+        if self.active_set_hold < 0:
+            raise out_of_range(self, "active_set_hold", "must be >= 0")
 
     @classmethod
     def from_dict(cls, values: dict, where: str = "") -> "QPSettings":
@@ -437,24 +440,98 @@ class LevelQP:
                 np.concatenate([self.u, self.box_u[keep]]))
 
 
-def _task_terms(data: _LevelData, cascade: Cascade, settings: QPSettings):
-    """Damped least squares ``‖W^½(A x − b)‖²`` in z (module docstring, [M 20]-style):
-    Hessian (r, r), gradient (r,), owned and free orthonormal bases in z."""
-    Z = cascade.Z
-    r = Z.shape[1]
+def _task_svd(data: _LevelData, cascade: Cascade) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The level's weighted task in z, ``W^½ A Z`` (m, r), its singular values and right singular
+    vectors ``Vᵀ`` (r, r), and its residual at the higher levels' answer ``W^½(A x_prev − b)``;
+    empty arrays without a task or free direction."""
+    Z, r = cascade.Z, cascade.Z.shape[1]
+    if data.Aw is None or r == 0:
+        return _no_rows(r), _NO_VECTOR, np.zeros((r, r)), _NO_VECTOR
     At = data.Aw if cascade.full else data.Aw @ Z
     r0 = -data.bw if cascade.depth == 0 else data.Aw @ cascade.x - data.bw
-    if r == 0:
-        empty = np.zeros((0, 0))
-        return empty, np.zeros(0), empty, empty
     _, sigma, vt, info = _lapack.dgesdd(At, compute_uv=1, full_matrices=1)  # np.linalg.svd, less overhead
     if info != 0:
         _, sigma, vt = np.linalg.svd(At, full_matrices=True)
-    threshold = settings.rank_tol * max(1.0, float(sigma[0]))
-    k = sigma.shape[0] if sigma[-1] > threshold else int(np.count_nonzero(sigma > threshold))  # sorted: a prefix
-    vk = vt[:k]
-    curvature = 2.0 * np.maximum(sigma[:k] ** 2, settings.damping_threshold ** 2)
-    return (vk.T * curvature) @ vk, 2.0 * (At.T @ r0), vk.T, vt[k:].T
+    return _c(At), sigma, _c(vt), _c(r0)
+
+
+def _c(a: np.ndarray) -> np.ndarray:
+    """``a`` as a writable C-contiguous float array: the one array type the kernels are compiled for
+    (another layout or a read-only array is another Numba signature, compiled in the tick that meets it)."""
+    return a if a.flags.c_contiguous and a.flags.writeable else np.array(a, dtype=float, order="C")
+
+
+@njit(cache=True)
+def level_qp_arrays(At, sigma, vt, r0, H, g, C, l, u, n_slack, slack_scale, Z, full, x_prev, moved,  # type: ignore[no-untyped-def]
+                    lb, ub, C_inh, l_inh, u_inh, reg, rank_tol, damping):
+    """The arrays of :func:`build_level_qp` (absent level parts passed with zero rows; ``At`` the task
+    in z with its SVD ``sigma``, ``vt``, and ``r0`` its residual at ``x_prev``, from :func:`_task_svd`).
+
+    Returns ``H, g, C, l, u, box_l, box_u, has_box, owned_z, free_z, has_task``."""
+    n, r = x_prev.shape[0], Z.shape[1]
+    ns = n_slack
+    nv = r + ns
+    Hv = np.zeros((nv, nv))
+    gv = np.zeros(nv)
+    k = 0
+    has_task = At.shape[0] > 0 and r > 0
+    if has_task:  # damped least squares (module docstring): owned directions σ > rank_tol·max(1, σ_max)
+        threshold = rank_tol * max(1.0, sigma[0])
+        while k < sigma.shape[0] and sigma[k] > threshold:  # sorted: a prefix
+            k += 1
+        for p in range(k):
+            c = 2.0 * max(sigma[p] * sigma[p], damping * damping)
+            for i in range(r):
+                a = c * vt[p, i]
+                for j in range(r):
+                    Hv[i, j] += a * vt[p, j]
+        gv[:r] = 2.0 * matvec(At.T, r0)
+    owned_z = vt[:k].T.copy()
+    free_z = vt[k:].T.copy()
+    linear = np.zeros(n)
+    has_linear = False
+    if H.shape[0]:
+        Hz = H if full else matmul(matmul(Z.T, H), Z)
+        Hv[:r, :r] += Hz
+        if moved:
+            linear += matvec(H, x_prev)
+            has_linear = True
+    if g.shape[0]:
+        linear += g
+        has_linear = True
+    if has_linear:
+        gv[:r] += linear if full else matvec(Z.T, linear)
+    if reg > 0.0 and r:  # tie-break on the directions the task leaves free
+        for i in range(r):
+            Hv[i, i] += reg
+        if k:
+            Hv[:r, :r] -= reg * matmul(owned_z, owned_z.T)
+    for i in range(ns):
+        Hv[r + i, r + i] = 1.0
+    p_inh, p_own = C_inh.shape[0], C.shape[0]
+    nb = 0 if full else n
+    m = p_inh + p_own + nb
+    Cv = np.zeros((m, nv))
+    lo, hi = np.empty(m), np.empty(m)
+    for start, Cp, lp, up in ((0, C_inh, l_inh, u_inh), (p_inh, C, l, u)):
+        p = Cp.shape[0]
+        if p:
+            Cv[start:start + p, :r] = Cp if full else matmul(Cp, Z)
+            cx = matvec(Cp, x_prev) if moved else np.zeros(p)
+            lo[start:start + p] = lp - cx
+            hi[start:start + p] = up - cx
+    for i in range(ns):
+        Cv[p_inh + i, r + i] = slack_scale
+    has_box = nb == 0
+    box_l, box_u = np.full(nv, -np.inf), np.full(nv, np.inf)
+    if nb:
+        Cv[m - n:, :r] = Z
+        lo[m - n:] = lb - x_prev
+        hi[m - n:] = ub - x_prev
+    else:  # Z the identity: the bounds as a box on z (free slacks)
+        box_l[:n] = lb - x_prev
+        box_u[:n] = ub - x_prev
+    return Hv, gv, Cv, lo, hi, box_l, box_u, has_box, owned_z, free_z, has_task
 
 
 def build_level_qp(level: Level | _LevelData, cascade: Cascade, settings: QPSettings = QPSettings()) -> LevelQP:
@@ -463,60 +540,22 @@ def build_level_qp(level: Level | _LevelData, cascade: Cascade, settings: QPSett
     Hessian: ``Zᵀ(2AᵀWA + H)Z`` (task part damped, module docstring) ``+ μ`` on
     the free directions the task leaves; slack block ``I``.  Rows: inherited and
     own rows in z, then the bounds ``Z z`` unless ``Z`` is the identity (box).
+    The arithmetic is one kernel, :func:`level_qp_arrays`, after the task's SVD (:func:`_task_svd`).
     """
     n = cascade.x.shape[0]
     data = level if isinstance(level, _LevelData) else _validate_level(level, n, "level")
-    Z, xp, full, moved = cascade.Z, cascade.x, cascade.full, cascade.depth > 0
-    r, ns = Z.shape[1], data.n_slack
-    nv = r + ns
-    Hv = np.zeros((nv, nv))
-    gv = np.zeros(nv)
-    P, q = Hv[:r, :r], gv[:r]  # views
-    owned_z, free_z = np.zeros((r, 0)), None
-    if data.Aw is not None:
-        P_task, q[:], owned_z, free_z = _task_terms(data, cascade, settings)
-        P += P_task
-    linear = data.H @ xp if data.H is not None and moved else None  # ∇(½xᵀHx + gᵀx) at x_prev
-    if data.H is not None:
-        P += data.H if full else Z.T @ data.H @ Z
-    if data.g is not None:
-        linear = data.g if linear is None else linear + data.g
-    if linear is not None:
-        q += linear if full else Z.T @ linear
-    mu = settings.regularization or 0.0  # tie-break on the directions the task leaves free
-    if mu and r:
-        P += mu * _eye(r) - (mu * owned_z) @ owned_z.T if owned_z.shape[1] else mu * _eye(r)
-    if ns:
-        Hv[r:, r:] = _eye(ns)
-    # --- rows in z: inherited, own (soft last), bounds Z z
-    p_inh = cascade.C.shape[0]
-    p_own = 0 if data.C is None else data.C.shape[0]
-    nb = 0 if full else n
-    m = p_inh + p_own + nb
-    Cv = np.zeros((m, nv))
-    lo, hi = np.empty(m), np.empty(m)
-    for start, (C, l, u) in ((0, (cascade.C, cascade.l, cascade.u)), (p_inh, (data.C, data.l, data.u))):
-        p = 0 if C is None else C.shape[0]
-        if p:
-            Cv[start:start + p, :r] = C if full else C @ Z
-            cx = C @ xp if moved else 0.0
-            lo[start:start + p] = l - cx
-            hi[start:start + p] = u - cx
-    if ns:
-        Cv[p_inh:p_inh + ns, r:] = _eye(ns) * (1.0 / np.sqrt(2.0 * data.rho))
-    box_l = box_u = None
-    if nb:
-        Cv[m - n:, :r] = Z
-        lo[m - n:] = cascade.lb - xp
-        hi[m - n:] = cascade.ub - xp
-    elif moved or ns:
-        box_l, box_u = np.empty(nv), np.empty(nv)
-        box_l[:n] = cascade.lb - xp
-        box_u[:n] = cascade.ub - xp
-        box_l[n:], box_u[n:] = -np.inf, np.inf
-    else:  # x_prev = 0: the bounds themselves
-        box_l, box_u = cascade.lb, cascade.ub
-    return LevelQP(Hv, gv, Cv, lo, hi, box_l, box_u, xp, Z, owned_z, free_z, ns, p_inh, nb)
+    ns = data.n_slack
+    At, sigma, vt, r0 = _task_svd(data, cascade)
+    H, g, C, lo, hi, box_l, box_u, has_box, owned_z, free_z, has_task = level_qp_arrays(
+        At, sigma, vt, r0,
+        _no_rows(n) if data.H is None else _c(data.H), _NO_VECTOR if data.g is None else _c(data.g),
+        _no_rows(n) if data.C is None else _c(data.C), _NO_VECTOR if data.l is None else _c(data.l),
+        _NO_VECTOR if data.u is None else _c(data.u), ns, 1.0 / math.sqrt(2.0 * data.rho) if ns else 0.0,
+        _c(cascade.Z), cascade.full, _c(cascade.x), cascade.depth > 0, _c(cascade.lb), _c(cascade.ub),
+        _c(cascade.C), _c(cascade.l), _c(cascade.u), settings.regularization or 0.0, settings.rank_tol,
+        settings.damping_threshold)
+    return LevelQP(H, g, C, lo, hi, box_l if has_box else None, box_u if has_box else None, cascade.x, cascade.Z,
+                   owned_z, free_z if has_task else None, ns, cascade.C.shape[0], 0 if cascade.full else n)
 
 
 def _objective_gradient(data: _LevelData, x: np.ndarray) -> np.ndarray | None:
@@ -529,6 +568,17 @@ def _objective_gradient(data: _LevelData, x: np.ndarray) -> np.ndarray | None:
     if data.g is not None:
         grad = data.g if grad is None else grad + data.g
     return grad
+
+
+def strictly_convex(qp: LevelQP, rank_tol: float) -> bool:
+    """Whether the level's QP has a single optimum: its Hessian in z positive definite, every
+    eigenvalue above ``rank_tol·max(1, λ_max)`` (the test :func:`advance_cascade` applies to what a level
+    owns), so that the cascade below it would have no free direction left."""
+    r = qp.r
+    if r == 0:
+        return True
+    eig = np.linalg.eigvalsh(qp.H[:r, :r])
+    return bool(eig[0] > rank_tol * max(1.0, float(eig[-1])))
 
 
 def _fix_signs(Z: np.ndarray) -> np.ndarray:
@@ -689,7 +739,7 @@ def line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale,
     """The arrays of :func:`_line_level_qp` (absent level parts passed with zero rows).
 
     Cost ``‖A x − b‖² + ½xᵀHx + gᵀx`` at ``x = x0 + t·d``: curvature and slope in ``t``
-    with the damping and tie-break of :func:`_task_terms` / :func:`build_level_qp` in one
+    with the damping and tie-break of :func:`level_qp_arrays` / :func:`build_level_qp` in one
     dimension; rows ``l − C x0 ≤ (C d) t + slack_scale·σ ≤ u − C x0``; box ``[t_lo, t_hi]`` on
     ``t``, free slacks.  Returns ``H, g, C, l, u, box_l, box_u`` and whether the task owns ``d``."""
     curvature, slope, owned = 0.0, 0.0, False
@@ -905,13 +955,15 @@ def active_set_solve(H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray
 @dataclass(slots=True)
 class _ProxEntry:
     """A persistent ProxSuite object with its members held by reference (each access through the
-    binding costs a call), and whether its next solve must start cold (the last one failed)."""
+    binding costs a call), whether its next solve must start cold (the last one failed), and how many
+    more solves DAQP answers alone after a fallback (``QPSettings.active_set_hold``)."""
 
     qp: object
     settings: object
     results: object
     info: object
     cold_next: bool = False
+    held: int = 0
 
 
 class _ProxSuiteBackend:
@@ -964,16 +1016,26 @@ class _ProxSuiteBackend:
         The budget is in iterations, so that answers do not depend on the machine's load: ProxQP's
         ``max_iter`` × ``max_iter_in`` (it cannot be interrupted on time), then, if ``active_set_fallback``,
         DAQP (:func:`active_set_solve`, at most ``max_iter_active_set`` iterations; counted in
-        ``stats.active_set_fallbacks``), and the next tick's ProxQP starts cold; without the fallback a
-        failed warm solve is retried cold at once.  The data are
-        finite (:func:`finite_data_raw` refuses others first)."""
+        ``stats.active_set_fallbacks``).  DAQP then answers this QP alone for its next
+        ``active_set_hold`` solves (counted likewise): a QP that ProxQP could not finish warm is usually
+        as hard on the next ticks (a pull against the bounds), and a failed attempt costs as much as the
+        DAQP solve itself (measured); after the hold ProxQP starts cold.  Without the fallback a failed
+        warm solve is retried cold at once.  The data are finite (:func:`finite_data_raw` refuses others
+        first)."""
         box = box_l is not None
+        key = (k, H.shape[0], C.shape[0], box)
+        entry = self._qps.get(key)
+        if entry is not None and entry.held:
+            entry.held -= 1
+            self._stats.active_set_fallbacks += 1
+            raw = active_set_solve(H, g, C, lo, hi, box_l, box_u, self._settings.max_iter_active_set)
+            if raw.status is LevelStatus.SOLVED:
+                return raw
+            entry.held, entry.cold_next = 0, True  # DAQP failed too: ProxQP tries, cold
         if C.shape[0]:
             data = dict(H=H, g=g, C=C, l=lo, u=hi, l_box=box_l, u_box=box_u) if box else dict(H=H, g=g, C=C, l=lo, u=hi)
         else:
             data = dict(H=H, g=g, l_box=box_l, u_box=box_u) if box else dict(H=H, g=g)
-        key = (k, H.shape[0], C.shape[0], box)
-        entry = self._qps.get(key)
         if entry is None:
             obj = self._create(H.shape[0], C.shape[0], box)
             obj.settings.initial_guess = self._cold
@@ -1003,6 +1065,7 @@ class _ProxSuiteBackend:
         if not fallback:
             return _Raw(None, status, info.iter, message)
         self._stats.active_set_fallbacks += 1
+        entry.held = self._settings.active_set_hold
         raw = active_set_solve(H, g, C, lo, hi, box_l, box_u, self._settings.max_iter_active_set)
         raw.message = f"{message}; {raw.message}"
         return raw
@@ -1115,6 +1178,8 @@ class HierarchicalQP:
             results.append(result)
             if not result.ok:
                 break
+            if k == len(data) - 1 and strictly_convex(qp, self.settings.rank_tol):
+                return results  # its answer is unique already: no optimal set left to search
             cascade = solved = advance_cascade(level, cascade, qp, result.x, self.settings)
         if solved is not None and solved.Z.shape[1]:
             last = results[-1] if results[-1].ok else results[-2]
@@ -1137,6 +1202,21 @@ class HierarchicalQP:
         answers exactly as a new one."""
         self.stats = HQPStats()
         self._backend = _make_backend(self.backend, self.settings, self.stats)
+
+    def warm_up(self) -> None:
+        """Load (or compile, once per machine) every kernel of the cascade by solving two small ones (a
+        two-row task above a task, a cost and soft and hard rows: the general cascade; an (n−1)-row task
+        above a cost with a soft row: the line fast path), then :meth:`reset`: a control tick that first
+        takes a path must not pay for it (loading two kernels took 30–60 ms, measured)."""
+        n = self.n
+        eye = np.eye(n)
+        self.solve([Level(A=eye[:2], b=np.ones(2)),
+                    Level(A=eye[2:3], b=np.ones(1), H=eye, C=eye[:1], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0),
+                    Level(g=np.ones(n), C=eye[1:2], l=-np.ones(1), u=np.ones(1))], -np.ones(n), np.ones(n))
+        self.solve([Level(A=eye[:n - 1], b=np.zeros(n - 1)),  # the line fast path's kernels
+                    Level(H=eye, g=np.ones(n), C=eye[n - 1:], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0)],
+                   -np.ones(n), np.ones(n))
+        self.reset()
 
     def _solve_on_line(self, data: list[_LevelData], line: _Line) -> list[LevelResult]:
         """Line fast path (module docstring): level 1 in closed form, level 2 (if any) on the line."""
@@ -1228,34 +1308,48 @@ class HierarchicalQP:
 
     def _check(self, level: _LevelData, qp: LevelQP, raw: _Raw) -> LevelResult:
         """Verify a level's answer: finite, and every bound and hard row (this level's and
-        the inherited ones) within ``feasibility_tol``; report residual and slack."""
+        the inherited ones) within ``feasibility_tol`` (:func:`level_answer`); report residual and slack."""
         if raw.status is not LevelStatus.SOLVED:
             return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
         v = raw.v
         if v is None or v.shape != qp.g.shape or not math.isfinite(v.sum()):
             return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
                                message=f"{raw.message}: non-finite or mis-shaped solution")
-        r, ns = qp.r, qp.n_slack
-        z = v[:r]
-        worst, slack = 0.0, None
-        if qp.box_l is not None:  # a box on z (Z the identity, or the line's t)
-            worst = float(np.maximum.reduce(np.maximum(qp.box_l[:r] - z, z - qp.box_u[:r])))
-        d = z if r == qp.Z.shape[0] else qp.Z @ z  # r = n only when Z is the identity
-        if qp.C.shape[0]:
-            rows = qp.C[:, :r] @ z  # without the slack; the bound rows (if any) are Z z = d
-            viol = np.maximum(qp.l - rows, rows - qp.u)  # > 0 outside
-            if ns:
-                soft = slice(qp.slack_start, qp.slack_start + ns)
-                slack = np.maximum(viol[soft], 0.0)
-                viol[soft] = 0.0
-            worst = max(worst, float(np.maximum.reduce(viol)))
+        box = qp.box_l is not None
+        x, worst, slack = level_answer(_c(v), _c(qp.Z), qp.r == qp.Z.shape[0], box,
+                                       qp.box_l if box else _NO_VECTOR, qp.box_u if box else _NO_VECTOR,
+                                       qp.C, qp.l, qp.u, qp.slack_start, qp.n_slack, _c(qp.x_prev))
         if not worst <= self.settings.feasibility_tol:
-            status = LevelStatus.INFEASIBLE if r == 0 else LevelStatus.INACCURATE
+            status = LevelStatus.INFEASIBLE if qp.r == 0 else LevelStatus.INACCURATE
             return LevelResult(status, iterations=raw.iterations,
                                message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
-        x = qp.x_prev + d
-        return LevelResult(LevelStatus.SOLVED, x=x, residual=_residual(level, x), slack=slack,
+        return LevelResult(LevelStatus.SOLVED, x=x, residual=_residual(level, x), slack=slack if qp.n_slack else None,
                            iterations=raw.iterations, message=raw.message)
+
+
+@njit(cache=True)
+def level_answer(v, Z, identity, has_box, box_l, box_u, C, l, u, slack_start, n_slack, x_prev):  # type: ignore[no-untyped-def]
+    """A level QP's answer ``v = [z; σ]`` checked: ``x = x_prev + Z z`` (``identity``: ``Z`` is I), the
+    worst violation of the box on z and of the hard rows (rows taken without σ; the bound rows, if
+    any, are ``Z z`` against ``lb − x_prev``), and each soft row's violation (its slack)."""
+    r = Z.shape[1]
+    z = v[:r]
+    worst = 0.0
+    if has_box:
+        for i in range(r):
+            worst = max(worst, box_l[i] - z[i], z[i] - box_u[i])
+    slack = np.zeros(n_slack)
+    for i in range(C.shape[0]):
+        row = 0.0
+        for j in range(r):
+            row += C[i, j] * z[j]
+        violation = max(l[i] - row, row - u[i])
+        if slack_start <= i < slack_start + n_slack:
+            slack[i - slack_start] = max(violation, 0.0)
+        else:
+            worst = max(worst, violation)
+    d = z.copy() if identity else matvec(Z, z)
+    return x_prev + d, worst, slack
 
 
 def solved_vector(raw: _Raw, shape: tuple[int, ...]) -> np.ndarray | None:

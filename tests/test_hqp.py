@@ -525,3 +525,39 @@ def test_line_fast_path_any_width():
     general = HierarchicalQP(n, settings=QPSettings(line_fast_path=False)).solve(levels, lb, ub)
     assert line.ok and general.ok and LINE_MESSAGE in line.levels[0].message
     np.testing.assert_allclose(line.x, general.x, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_strictly_convex_is_a_positive_definite_hessian_in_z(seed):
+    """The last level's answer is taken as unique (no advance, no least-norm step) exactly when its
+    Hessian in z has no eigenvalue at or below ``rank_tol·max(1, λ_max)`` (NumPy's eigenvalues)."""
+    from qpnso.hqp import strictly_convex
+
+    rng = np.random.default_rng(seed)
+    r = int(rng.integers(1, 6))
+    B = rng.normal(size=(r, int(rng.integers(1, r + 2))))  # rank ≤ r: singular when it has fewer columns
+    H = B @ B.T
+    c0 = Cascade.start(-np.ones(r), np.ones(r))
+    qp = build_level_qp(Level(H=H), c0)
+    eig = np.linalg.eigvalsh(H)
+    assert strictly_convex(qp, 1e-10) == bool(eig[0] > 1e-10 * max(1.0, eig[-1]))
+
+
+def test_warm_up_loads_every_cascade_kernel_and_forgets(tmp_path):
+    """After ``HierarchicalQP.warm_up`` in a new process, both the general cascade's and the line fast path's
+    kernels are loaded (a control tick that first takes a path must not load or compile one: 30–60 ms), and
+    the solver is as new."""
+    import subprocess
+    import sys
+
+    code = """
+import qpnso.hqp as h
+qp = h.HierarchicalQP(7)
+kernels = (h.level_qp_arrays, h.level_answer, h.line_qp_arrays, h.checked_line_answer, h.task_line,
+           h.least_norm_point, h.qp_data_finite)
+assert all(len(k.signatures) == 0 for k in kernels)
+qp.warm_up()
+print([k.__name__ for k in kernels if len(k.signatures) != 1], qp.stats == h.HQPStats(), qp._backend.qp_objects)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "[] True 0"

@@ -293,6 +293,7 @@ class Controller:
         cached on disk) or load here, for the compiled tick and the general path alike, never in a
         control tick."""
         announce_numba_if_cold()  # one line on stderr when the kernels compile now (empty cache)
+        self.qp.warm_up()  # the general cascade's kernels (the dry ticks below may not reach it)
         q = self.robot.sample_configuration()
         compiled = self.compiled_tick
         for path in {compiled, False}:
@@ -422,7 +423,7 @@ class Controller:
         """The tick through :meth:`HierarchicalQP.solve` with the strategy's levels (any strategy);
         ``started`` the ``(state, elbow, status)`` a compiled tick got to before the line fast path
         proved not to apply."""
-        state, elbow, status = started or self._begin(qv)
+        state, elbow, status = started or self._begin(qv, twist)
         if state.flags & FLAG_INTERNAL_ERROR:
             return self._stop(qv, state.gravity, status.value | FLAG_INTERNAL_ERROR, t0,
                               "the arm's state is not finite: joints stopped")
@@ -446,16 +447,17 @@ class Controller:
     def _level1_target(self, twist: np.ndarray, error: np.ndarray, state: TickState) -> np.ndarray:
         """Level 1's ``J q̇ = v + K_p e − ½dt·J̇q̇`` (m/s, rad/s; as :func:`qpnso.tick.qp_tick`): the tool twist,
         the capped pose correction (:func:`qpnso.tick.pose_correction`), and the step's second-order term.
-        Over a tick at q̇ the tool moves by ``dt·J q̇ + ½dt²·J̇q̇``; with J̇q̇ along the previous command
-        taken out, a null-space motion no longer drags a held tool (it did by about 1.2 µm·(|q̇|/(rad/s))²,
-        8 µm and 2e-5 rad for elbow-up's returns in the fuzz)."""
+        Over a tick at q̇ the tool moves by ``dt·J q̇ + ½dt²·J̇q̇``; with J̇q̇ along the predicted command
+        (the previous one with this tick's twist: :func:`qpnso.state.predicted_velocity`) taken out, a
+        null-space motion no longer drags a held tool (it did by about 1.2 µm·(|q̇|/(rad/s))², 8 µm and
+        2e-5 rad for elbow-up's returns in the fuzz), nor does a pull that stops."""
         return twist + pose_correction(error, self._gains) - self._gains[10] * state.tool_drift
 
-    def _begin(self, qv: np.ndarray) -> tuple[TickState, ElbowState, Status]:
+    def _begin(self, qv: np.ndarray, twist: np.ndarray) -> tuple[TickState, ElbowState, Status]:
         """The general tick's start: ``q`` checked, the state (made safe; drift along the previous
-        command), the elbow."""
+        command with its tool part replaced by ``twist``: :func:`qpnso.state.predicted_velocity`), the elbow."""
         status = self._check_input(qv)
-        state = self.evaluate(qv, self._dq_prev)
+        state = self.evaluate(qv, self._dq_prev, twist)
         if state.flags:
             status |= _status(state.flags)
         elbow = self._elbow(state)
@@ -467,7 +469,7 @@ class Controller:
         and :func:`qpnso.tick.qp_tick_answer` (checks, command, torque): the general path's answer to
         round-off.  Returns the Command; or, when the line fast path does not apply, ``(state, elbow,
         status)`` for the general path to go on from; or None when nothing was done (singular arm angle)."""
-        flat = self.evaluate.raw(qv, self._dq_prev)
+        flat = self.evaluate.raw(qv, self._dq_prev, twist)
         t1 = time.perf_counter()
         buf, stale = self._line, False
         tick, t_interval = self._qp_tick(qv, flat, twist, True), 0.0

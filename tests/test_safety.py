@@ -196,6 +196,37 @@ def test_active_set_fallback_solves_what_proxqp_cannot_in_its_budget() -> None:
     np.testing.assert_allclose(result.x, np.linalg.pinv(A) @ b, atol=1e-12)  # least norm: unique
 
 
+def test_after_a_fallback_daqp_alone_answers_for_the_hold_then_proxqp_again() -> None:
+    """``active_set_hold`` solves after a ProxQP failure go straight to DAQP (ProxQP's iteration count is
+    not reported for them), then ProxQP answers again, cold; every answer is the closed form."""
+    rng = np.random.default_rng(1)
+    A, b = rng.normal(size=(6, 7)), rng.normal(size=6)
+    lb, ub = -np.full(7, 10.0), np.full(7, 10.0)
+    hold = 3
+    qp = HierarchicalQP(7, settings=QPSettings(max_iter=1, max_iter_in=1, line_fast_path=False,
+                                               active_set_hold=hold))
+    messages = []
+    for _ in range(hold + 2):
+        result = qp.solve([Level(A=A, b=b)], lb, ub)
+        assert result.ok
+        np.testing.assert_allclose(result.x, np.linalg.pinv(A) @ b, atol=1e-12)
+        messages.append(result.levels[0].message)
+    assert messages[0].startswith("proxsuite") and messages[0].endswith("daqp")  # failed, then DAQP
+    assert messages[1:hold + 1] == ["daqp"] * hold  # the hold: DAQP alone
+    assert messages[hold + 1].startswith("proxsuite")  # ProxQP tries again (and fails in 1 iteration)
+    assert qp.stats.active_set_fallbacks == hold + 2
+
+
+def test_no_hold_means_proxqp_every_solve() -> None:
+    rng = np.random.default_rng(1)
+    A, b = rng.normal(size=(6, 7)), rng.normal(size=6)
+    qp = HierarchicalQP(7, settings=QPSettings(max_iter=1, max_iter_in=1, line_fast_path=False, active_set_hold=0))
+    for _ in range(3):
+        assert qp.solve([Level(A=A, b=b)], -np.full(7, 10.0), np.full(7, 10.0)).levels[0].message.startswith("proxsuite")
+    with pytest.raises(qpnso.ConfigError, match="active_set_hold"):
+        QPSettings(active_set_hold=-1)
+
+
 def test_active_set_solve_matches_a_closed_form() -> None:
     H, g = np.diag([2.0, 4.0]), np.array([-2.0, -8.0])  # unconstrained optimum (1, 2)
     raw = active_set_solve(H, g, np.array([[1.0, 1.0]]), np.array([-np.inf]), np.array([2.0]), None, None)
@@ -303,7 +334,7 @@ def test_sanitize_state_by_hand(robot, controllers) -> None:
 
     ev = controllers["qp"].evaluate
     o = ev.offsets
-    flat = ev.raw(Q1, np.zeros(7)).copy()
+    flat = ev.raw(Q1, np.zeros(7), np.zeros(6)).copy()
     clean = flat.copy()
     assert sanitize_state(flat, o) == 0
     np.testing.assert_array_equal(flat, clean)

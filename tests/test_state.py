@@ -11,7 +11,7 @@ import pytest
 import qpnso
 from qpnso import elbow as E
 from qpnso.costs import CostModel, CostWeights
-from qpnso.state import StateEvaluator, state_views
+from qpnso.state import PREDICTION_DAMPING, StateEvaluator, state_views
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +56,12 @@ def test_every_field_matches_its_independent_computation(evaluator, rng) -> None
         np.testing.assert_allclose(moving.tool_drift, a.vector, atol=1e-12)
         jac = [robot.jacobian(q + t * dq) for t in (1e-6, -1e-6)]
         np.testing.assert_allclose(moving.tool_drift, (jac[0] - jac[1]) @ dq / 2e-6, atol=1e-7)  # central difference
+        twist = rng.normal(size=6)  # this tick's twist: the drift is along dq with its tool part replaced
+        J = robot.jacobian(q)
+        predicted = dq + J.T @ np.linalg.solve(J @ J.T + PREDICTION_DAMPING ** 2 * np.eye(6), twist - J @ dq)
+        pin.forwardKinematics(robot.model, data, q, predicted, np.zeros(7))
+        a = pin.getFrameClassicalAcceleration(robot.model, data, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED)
+        np.testing.assert_allclose(evaluator(q, dq, twist).tool_drift, a.vector, atol=1e-12)
 
 
 def test_fields_are_views_of_one_array_and_raw_is_the_same_state(evaluator) -> None:
@@ -64,11 +70,11 @@ def test_fields_are_views_of_one_array_and_raw_is_the_same_state(evaluator) -> N
     base = s.pose.base
     for field in (s.tool_rotation, s.tool_position, s.jacobian, s.mass_matrix, s.gravity, s.cost_gradient):
         assert np.shares_memory(field, base)
-    flat = evaluator.raw(q, np.zeros(7))
+    flat = evaluator.raw(q, np.zeros(7), np.zeros(6))
     assert flat.shape == (evaluator.offsets[-1],)
     again = evaluator.state(q, flat.copy())
     for a, b in ((s.jacobian, again.jacobian), (s.mass_matrix, again.mass_matrix), (s.gravity, again.gravity)):
         np.testing.assert_array_equal(a, b)
-    assert flat is evaluator.raw(q + 0.01, np.zeros(7))  # the evaluator's buffer, overwritten by the next call
+    assert flat is evaluator.raw(q + 0.01, np.zeros(7), np.zeros(6))  # the evaluator's buffer, overwritten by the next call
     views = state_views(flat, evaluator.offsets)
     assert len(views) == len(evaluator.offsets)  # ten parts; the two singularity measures come apart

@@ -97,7 +97,11 @@ CHECKS = (
     Check("bad_accepted", "every bad input refused with a QpnsoError", ""),
     Check("drift", "held-tool drift < {drift_tol_m:g} m / {drift_tol_rad:g} rad from non-singular starts",
           "m or rad"),
-    Check("solve_time", "0 ticks over {solve_time_max:g} s of solver time (cmd.solve_time)", "s"),
+    Check("solve_time", "0 ticks over {solve_time_max:g} s of solver time (cmd.solve_time, unless the whole "
+          "tick used less CPU than that: then the machine preempted it, counted below)", "s"),
+    Check("preempted", "ticks over {solve_time_max:g} s of solver wall time that used less CPU time than that "
+          "in the whole tick (time.thread_time around step: the machine, not the code; reported, not a "
+          "must-hold line)", "s", must_hold=False),
     Check("rom_excursion", "0 ticks with the arm angle outside ROM_t and moving away without "
           "ELBOW_SLACK/ROM_EMPTY (strategies {rom_strategies}; reported, not a must-hold line)", "rad",
           must_hold=False),
@@ -249,6 +253,7 @@ class FuzzReport:
     wall_seconds: float = 0.0
     solve_times: array = field(default_factory=lambda: array("d"), repr=False)  # s, every valid tick
     tick_times: array = field(default_factory=lambda: array("d"), repr=False)
+    tick_cpu_times: array = field(default_factory=lambda: array("d"), repr=False)  # s, CPU of the whole step
 
     max_exceptions_kept = 20
 
@@ -278,7 +283,8 @@ class FuzzReport:
         """Solver and whole-tick times (s): p50, p99, p99.9, max and the count over ``solve_time_max``;
         recovery ticks: p50, p99, max."""
         out: dict[str, dict[str, float]] = {}
-        for name, values in (("solve_time", self.solve_times), ("tick_time", self.tick_times)):
+        for name, values in (("solve_time", self.solve_times), ("tick_time", self.tick_times),
+                             ("tick_cpu_time", self.tick_cpu_times)):
             a = np.asarray(values, dtype=float)
             if a.size:
                 p50, p99, p999 = np.percentile(a, [50, 99, 99.9])
@@ -320,7 +326,7 @@ class FuzzReport:
         lines += ["", f"| time | p50 µs | p99 µs | p99.9 µs | max µs | over {1e3 * cfg.solve_time_max:g} ms |",
                   "|---|---|---|---|---|---|"]
         pct = self.percentiles()
-        for name in ("solve_time", "tick_time"):
+        for name in ("solve_time", "tick_time", "tick_cpu_time"):
             if name in pct:
                 p = pct[name]
                 lines.append(f"| {name} | {1e6 * p['p50']:.0f} | {1e6 * p['p99']:.0f} | {1e6 * p['p99.9']:.0f} | "
@@ -395,9 +401,12 @@ class TickChecker:
         self.correction_speed = ControllerConfig().pose_correction_speed  # m/s, the controllers' (defaults)
 
     # ------------------------------------------------------------- command
-    def command(self, cmd: Command, q: np.ndarray, where: Where, inputs: dict, timed: bool = True) -> bool:
-        """Check one command given at ``q`` (rad): finite, velocity, joint limits, torque, solver time.
-        Returns whether ``dq`` is finite (the plant can apply it)."""
+    def command(self, cmd: Command, q: np.ndarray, where: Where, inputs: dict, timed: bool = True,
+                cpu_time: float = math.inf) -> bool:
+        """Check one command given at ``q`` (rad): finite, velocity, joint limits, torque, solver time
+        (``cpu_time``, s: the CPU time of the whole ``step`` call, which bounds the solver's; a tick over
+        ``solve_time_max`` in wall time but not in CPU time was preempted).  Returns whether ``dq`` is
+        finite (the plant can apply it)."""
         rep, cfg = self.report, self.config
         dq = np.asarray(cmd.dq, dtype=float)
         q_des = np.asarray(cmd.q_des, dtype=float)
@@ -405,9 +414,12 @@ class TickChecker:
         if timed:
             rep.solve_times.append(cmd.solve_time)
             rep.tick_times.append(cmd.tick_time)
+            if math.isfinite(cpu_time):
+                rep.tick_cpu_times.append(cpu_time)
         if cmd.solve_time > cfg.solve_time_max:
-            rep.record("solve_time", cmd.solve_time, where, inputs,
-                       f"status {cmd.status}, tick_time {cmd.tick_time:.4g} s")
+            key = "solve_time" if cpu_time > cfg.solve_time_max else "preempted"
+            rep.record(key, cmd.solve_time, where, inputs,
+                       f"status {cmd.status}, tick_time {cmd.tick_time:.4g} s, tick CPU time {cpu_time:.4g} s")
         shapes = dq.shape == q_des.shape == tau.shape == q.shape
         bad = 0 if shapes else q.size
         if shapes:
@@ -976,9 +988,11 @@ class Episode:
         chk.drift(self.hold, error, self.previous, where, inputs)
         if self.rng.random() < cfg.p_probe_burst:
             self._probe_burst()
+        cpu = time.thread_time()
         cmd = self._step(twist, dq_in, inputs)
+        cpu = time.thread_time() - cpu
         self.report.count_tick(self.strategy)
-        finite = cmd is not None and chk.command(cmd, self.q, where, inputs)
+        finite = cmd is not None and chk.command(cmd, self.q, where, inputs, cpu_time=cpu)
         self.failures_in_row = 0 if finite else self.failures_in_row + 1
         if cmd is not None and self.strategy in cfg.rom_strategies:
             self.rom_out = chk.rom(cmd, self.rom_out, where, inputs)

@@ -188,3 +188,18 @@ def test_seeded_closed_loop_fuzz_holds_every_line() -> None:
     assert {k.split(" ")[0] for k in report.start_kinds} == {"uniform", "near_limit", "elbow_straight",
                                                             "wrist_over_shoulder"}
     assert report.failures() == [], report.table()
+
+
+def test_a_tick_slow_only_in_wall_time_counts_as_preempted(tool_robot) -> None:
+    """A tick over the solver-time limit in wall time, whose whole step used less CPU than the limit, is the
+    machine's (preempted), not a violation; one over it in CPU time too is."""
+    rep = FuzzReport(FuzzConfig())
+    checker = TickChecker(tool_robot, rep.config, rep)
+    q = tool_robot.sample_configuration()
+    checker.command(fake_command(tool_robot, q, solve_time=2e-3), q, WHERE, {"q": q}, cpu_time=1e-4)
+    assert rep.counts["preempted"] == 1 and rep.counts["solve_time"] == 0
+    checker.command(fake_command(tool_robot, q, solve_time=2e-3), q, WHERE, {"q": q}, cpu_time=3e-3)
+    assert rep.counts["preempted"] == 1 and rep.counts["solve_time"] == 1
+    failures = rep.failures()
+    assert len(failures) == 1 and failures[0].startswith("0 ticks over")  # the preempted line is not a must-hold
+    assert rep.percentiles()["tick_cpu_time"]["n"] == 2

@@ -245,6 +245,7 @@ class FuzzReport:
     recovery: list[int] = field(default_factory=list)  # ticks to recover, every measured disturbance
     recovery_censored: int = 0  # the episode ended or another disturbance came first (< the limit)
     recovery_unreachable: int = 0  # over the limit but the reference was not reachable (not counted)
+    recovery_elbow_undefined: int = 0  # over the limit, elbow dropped, the arm angle undefined at the held pose
     drift_checked: int = 0  # held ticks checked for drift (settled, not excused)
     episodes_cut: int = 0  # episodes cut short after episode_seconds
     completed: bool | None = None  # after a run: whether it ran every tick asked for
@@ -334,7 +335,9 @@ class FuzzReport:
         r = pct.get("recovery_ticks")
         lines += ["", f"recovery: {len(self.recovery)} measured"
                   + (f", p50 {r['p50']:.0f}, p99 {r['p99']:.0f}, max {r['max']:.0f} ticks" if r else "")
-                  + f"; {self.recovery_censored} censored; {self.recovery_unreachable} with an unreachable reference"]
+                  + f"; {self.recovery_censored} censored; {self.recovery_unreachable} with an unreachable reference"
+                  + f"; {self.recovery_elbow_undefined} with the arm angle undefined at the held pose (not counted: "
+                    "the wrist centre fixes it, no self-motion changes it)"]
         refused = sum(v.get("refused", 0) for v in self.probe_outcomes.values())
         accepted = sum(v.get("accepted", 0) for v in self.probe_outcomes.values())
         lines.append(f"bad inputs: {self.probes} sent, {refused} refused, {accepted} accepted")
@@ -354,7 +357,8 @@ class FuzzReport:
             "first": {k: asdict(v) for k, v in self.first.items()}, "by_strategy": self.by_strategy,
             "start_kinds": self.start_kinds, "probe_outcomes": self.probe_outcomes,
             "percentiles": self.percentiles(), "recovery_censored": self.recovery_censored,
-            "recovery_unreachable": self.recovery_unreachable, "drift_checked": self.drift_checked,
+            "recovery_unreachable": self.recovery_unreachable,
+            "recovery_elbow_undefined": self.recovery_elbow_undefined, "drift_checked": self.drift_checked,
             "episodes_cut": self.episodes_cut, "completed": self.completed, "exceptions": self.exceptions,
             "build_seconds": self.build_seconds, "wall_seconds": self.wall_seconds,
         })  # type: ignore[return-value]
@@ -562,6 +566,9 @@ def update_recovery(pending: Recovery | None, tick: int, cmd: Command | None, er
         if not checker.reachable(q, *reference):
             rep.recovery_unreachable += 1
             return None
+        if cmd is not None and cmd.status & Status.ELBOW_DROPPED and arm_angle_undefined(checker, q):
+            rep.recovery_elbow_undefined += 1
+            return None
         pending.overdue = True
         rep.record("recovery", elapsed, replace(pending.where, tick=tick), inputs,
                    f"{pending.kind}: not recovered after {elapsed} ticks; tool error {error_m:.3g} m, "
@@ -600,6 +607,15 @@ def _arm_measures(checker: TickChecker, q: np.ndarray) -> tuple[float, float]:
     sw = pw - ps
     n = float(np.linalg.norm(sw))
     return float(np.linalg.norm(np.cross([0.0, 0.0, 1.0], sw))) / n, float(np.linalg.norm(np.cross(sw, pe - ps))) / n
+
+
+def arm_angle_undefined(checker: TickChecker, q: np.ndarray) -> bool:
+    """Whether the arm angle is undefined at ``q`` (Pinocchio's kinematics): the shoulder–wrist line within
+    :data:`WRIST_CONE_DEG` of the vertical or the elbow within :data:`ELBOW_OFFSET_MIN_M` of that line.  Both
+    depend on the wrist centre alone, which the held tool pose fixes: no self-motion leaves this set, so
+    ``ELBOW_DROPPED`` there is not a failure to recover (OK is out of reach while the tool is held)."""
+    wrist_sin, offset = _arm_measures(checker, q)
+    return wrist_sin < math.sin(math.radians(WRIST_CONE_DEG)) or offset < ELBOW_OFFSET_MIN_M
 
 
 def start_is_singular(checker: TickChecker, q: np.ndarray) -> bool:

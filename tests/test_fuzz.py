@@ -203,3 +203,20 @@ def test_a_tick_slow_only_in_wall_time_counts_as_preempted(tool_robot) -> None:
     failures = rep.failures()
     assert len(failures) == 1 and failures[0].startswith("0 ticks over")  # the preempted line is not a must-hold
     assert rep.percentiles()["tick_cpu_time"]["n"] == 2
+
+
+def test_a_dropped_elbow_at_a_pose_that_fixes_it_is_not_a_failure_to_recover(checker, tool_robot) -> None:
+    """Overdue, ``ELBOW_DROPPED``, the elbow straight (its distance from the shoulder–wrist line is 0 for every
+    self-motion): counted apart, not as a failed recovery; the same at a bent elbow is a failure."""
+    from qpnso.fuzz import Recovery, arm_angle_undefined, update_recovery
+
+    straight = np.radians([10.0, 40.0, -10.0, 0.0, 20.0, 50.0, 0.0])  # q4 = 0: elbow straight
+    bent = np.radians([10.0, 40.0, -10.0, -70.0, 20.0, 50.0, 0.0])
+    assert arm_angle_undefined(checker, straight) and not arm_angle_undefined(checker, bent)
+    rep, limit = checker.report, checker.config.recovery_ticks
+    for q, undefined, failed in ((straight, 1, 0), (bent, 1, 1)):
+        reference = checker.tool_pose(q)
+        pending = Recovery("pull", 0, WHERE)
+        cmd = fake_command(tool_robot, q, status=Status.ELBOW_DROPPED)
+        assert (update_recovery(pending, limit, cmd, 0.0, checker, q, reference, {"q": q}) is None) == (q is straight)
+        assert (rep.recovery_elbow_undefined, rep.counts["recovery"]) == (undefined, failed)

@@ -125,6 +125,7 @@ class ControllerConfig:
     cost_gain: float = 10.0  # rad²/s per unit cost: level-2 step -gain·∇c
     nullspace_speed_max: float = 1.0  # rad/s, saturation of the cost step (as [M 21]) and of the baselines' posture steps
     cost_filter_time: float = 0.1  # s, low-pass of the cost step (0: none): no velocity steps
+    posture_filter_time: float = 0.1  # s, the same low-pass of the baselines' kinematic posture steps (0: none)
     elbow_gain: float = 5.0  # 1/s, velocity damper of the elbow bounds
     joint_limit_gain: float = 20.0  # 1/s, velocity damper of the joint limits (≤ 1/dt)
     slack_weight: float = 1e6  # weight of the elbow constraints' slack
@@ -165,7 +166,7 @@ class ControllerConfig:
         if self.joint_limit_gain * self.dt > 1.0:
             raise out_of_range(self, "joint_limit_gain",
                                f"must be <= 1/dt = {1 / self.dt:g} 1/s (else a joint could cross its limit)")
-        for name in ("cost_filter_time", "safety_margin_deg", "q_limit_tolerance_deg"):
+        for name in ("cost_filter_time", "posture_filter_time", "safety_margin_deg", "q_limit_tolerance_deg"):
             if getattr(self, name) < 0:
                 raise out_of_range(self, name, "must be >= 0")
         if self.interval_period < 1:

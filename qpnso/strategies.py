@@ -36,9 +36,22 @@ class Strategy:
         self.ctrl = controller
         self.cfg = controller.config
         self._identity = np.eye(controller.robot.nq)
+        self._target: np.ndarray | None = None  # the low-passed kinematic target; None: at rest
 
     def reset(self, q0: np.ndarray, state: "TickState") -> None:
-        """Called by ``Controller.reset``."""
+        """Called by ``Controller.reset``: from rest (a subclass calls this first)."""
+        self._target = None
+
+    def posture_target(self, velocity: np.ndarray) -> np.ndarray:
+        """A baseline's kinematic level-2 target (rad/s, or rad/s of the arm angle): :func:`capped`, then
+        low-passed with ``posture_filter_time`` from rest, as the ``qp`` strategy's cost step is
+        (``cost_filter_time``): no velocity steps.  A step from rest to 3 rad/s of self-motion in one tick
+        moved the held tool by 1.02 µrad (the second-order term along the previous command cannot see it
+        coming; the fuzz, measured)."""
+        v = capped(velocity, self.cfg)
+        previous = self._target if self._target is not None and self._target.shape == v.shape else np.zeros_like(v)
+        self._target = low_pass(previous, v, filter_alpha(self.cfg.posture_filter_time, self.cfg.dt))
+        return self._target.copy()
 
     def level2(self, state: "TickState", elbow: "ElbowState") -> Level | None:
         return None
@@ -70,11 +83,12 @@ class FixedPosture(Strategy):
         return self.cfg.posture_stiffness
 
     def reset(self, q0: np.ndarray, state: "TickState") -> None:
+        super().reset(q0, state)
         ref = self.cfg.fixed_posture
         self.q_ref = q0.copy() if ref is None else self.ctrl.robot.check_q(ref, "fixed_posture")
 
     def level2(self, state: "TickState", elbow: "ElbowState") -> Level:
-        return Level(A=self._identity, b=capped(self.cfg.posture_gain * (self.q_ref - state.q), self.cfg))
+        return Level(A=self._identity, b=self.posture_target(self.cfg.posture_gain * (self.q_ref - state.q)))
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         return self.cfg.posture_stiffness * (self.q_ref - state.q) - self.cfg.joint_damping * dq_meas
@@ -87,6 +101,11 @@ def capped(velocity: np.ndarray, cfg: "ControllerConfig") -> np.ndarray:
     norm = float(np.sqrt(velocity @ velocity))
     limit = cfg.nullspace_speed_max
     return velocity * (limit / norm) if norm > limit else velocity
+
+
+def filter_alpha(time_constant: float, dt: float) -> float:
+    """Per-tick factor ``dt/max(τ, dt)`` of a first-order low-pass of time constant ``τ`` (s; 0: no filter)."""
+    return dt / max(time_constant, dt) if time_constant > 0 else 0.0
 
 
 def arm_angle_step(state: "TickState", delta_ns: float) -> np.ndarray:
@@ -114,7 +133,7 @@ class ElbowUp(Strategy):
     def level2(self, state, elbow) -> Level:
         row = state.arm_angle_gradient.reshape(1, -1)
         rate = self.cfg.posture_gain * self._delta(elbow)  # rad/s of the arm angle
-        return Level(A=row, b=capped(np.array([rate]), self.cfg))
+        return Level(A=row, b=self.posture_target(np.array([rate])))
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         return (self.cfg.posture_stiffness * arm_angle_step(state, self._delta(elbow))
@@ -138,7 +157,7 @@ class Gradient(Strategy):
         return omega * min(1.0, self.cfg.gradient_omega_max / norm) if norm > 0 else omega
 
     def level2(self, state, elbow) -> Level:
-        return Level(A=self._identity, b=capped(self.desired_velocity(state), self.cfg))
+        return Level(A=self._identity, b=self.posture_target(self.desired_velocity(state)))
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         return -self.cfg.gradient_kd * (dq_meas - self.desired_velocity(state))
@@ -178,10 +197,16 @@ class RomModulation(Strategy):
             return arm_angle_step(state, target - elbow.ns)
 
     def level2(self, state, elbow) -> Level | None:
+        """Towards the set-point while ``ns`` is outside ROM_t; inside, nothing once the low-passed target
+        has decayed below 1e-9 rad/s (it decays over ``posture_filter_time`` instead of stopping at once)."""
         step = self._setpoint_step(state, elbow)
-        if step is None:
+        if step is None and self._target is None:
             return None
-        return Level(A=self._identity, b=capped(self.cfg.posture_gain * step, self.cfg))
+        target = self.posture_target(self.cfg.posture_gain * step if step is not None else np.zeros(state.q.size))
+        if step is None and float(np.abs(target).max()) < 1e-9:
+            self._target = None
+            return None
+        return Level(A=self._identity, b=target)
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
         step = self._setpoint_step(state, elbow)
@@ -211,13 +236,13 @@ class QPStrategy(Strategy):
         """State of the cost step's low-pass (rad/s), updated in place (the compiled tick shares it)."""
 
     def reset(self, q0: np.ndarray, state: "TickState") -> None:
+        super().reset(q0, state)
         self.filtered_step[:] = 0.0  # from rest
 
     @property
     def filter_alpha(self) -> float:
-        """Per-tick factor ``dt/max(τ_f, dt)`` of the low-pass (``cost_filter_time`` τ_f; 0: no filter)."""
-        tau = self.cfg.cost_filter_time
-        return self.cfg.dt / max(tau, self.cfg.dt) if tau > 0 else 0.0
+        """Per-tick factor of the cost step's low-pass (:func:`filter_alpha` of ``cost_filter_time``)."""
+        return filter_alpha(self.cfg.cost_filter_time, self.cfg.dt)
 
     def level2(self, state, elbow) -> Level:
         cfg = self.cfg

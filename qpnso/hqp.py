@@ -577,6 +577,8 @@ def strictly_convex(qp: LevelQP, rank_tol: float) -> bool:
     r = qp.r
     if r == 0:
         return True
+    if r == 1:  # the usual last level (one self-motion direction): its curvature
+        return bool(qp.H[0, 0] > rank_tol * max(1.0, float(qp.H[0, 0])))
     eig = np.linalg.eigvalsh(qp.H[:r, :r])
     return bool(eig[0] > rank_tol * max(1.0, float(eig[-1])))
 

@@ -53,10 +53,10 @@ from qpnso.state import StateEvaluator, TickState
 from qpnso.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
                          FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED,
                          FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, FLAG_TORQUE_SATURATED, LINE_OK, NS,
-                         P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE,
+                         P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, TICK_Q_REFUSED,
                          TICK_STATE_NOT_FINITE, LineTickBuffers, answer_bits, arm_angle_singular, elbow_advance,
                          elbow_bounds, elbow_memory, elbow_parameters, finish_command, interval_failed,
-                         interval_stale, limits_status, pose_correction, pose_error, qp_command, qp_tick,
+                         interval_stale, level1_target, limits_status, pose_error, qp_command, qp_tick,
                          qp_tick_answer, store_interval, velocity_bounds)
 
 def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Status:
@@ -64,6 +64,9 @@ def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Sta
     (``ELBOW_SLACK``) against what is reported (:func:`qpnso.tick.answer_bits`)."""
     return _status(answer_bits(-1.0 if tool_residual is None else tool_residual,
                                slack.max() if slack is not None and slack.size else -1.0))
+
+
+_NOT_FINITE_MESSAGE = "the command was not finite: joints stopped"
 
 
 def _status(bits: int) -> "Status":
@@ -254,8 +257,11 @@ class Controller:
                                               ec.stiffness_max, ec.alpha_per_rad, ec.d_rad, _WRIST_SIN_MIN,
                                               ELBOW_OFFSET_MIN_M, cfg.interval_period)
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
-        # rows: q as checked (rad, limits widened by 1e-9), q_min, q_max (rad), dq_max (rad/s)
-        self._limits = np.array([robot.q_min - 1e-9, robot.q_max + 1e-9, robot.q_min, robot.q_max, robot.dq_max])
+        tolerance = math.radians(cfg.q_limit_tolerance_deg)
+        self._q_accepted = (robot.q_min - tolerance, robot.q_max + tolerance)  # rad: beyond, InputError
+        # rows: q as checked (rad, limits widened by 1e-9), q_min, q_max (rad), dq_max (rad/s), q accepted (rad)
+        self._limits = np.array([robot.q_min - 1e-9, robot.q_max + 1e-9, robot.q_min, robot.q_max, robot.dq_max,
+                                 *self._q_accepted])
         self._q_shape = (robot.nq,)
         self.strategy = make_strategy(cfg.strategy, self)
         self._can_compile = cfg.strategy == "qp" and self.qp.settings.line_fast_path
@@ -264,8 +270,6 @@ class Controller:
                                 self.strategy.filter_alpha if self._can_compile else 0.0, cfg.elbow_gain,
                                 1.0 / math.sqrt(2.0 * cfg.slack_weight), cfg.recovery_speed,
                                 cfg.pose_correction_speed, cfg.pose_correction_angular_speed, 0.5 * cfg.dt])
-        tolerance = math.radians(cfg.q_limit_tolerance_deg)
-        self._q_accepted = (robot.q_min - tolerance, robot.q_max + tolerance)  # rad: beyond, InputError
         self._dq_accepted = cfg.dq_tolerance_factor * robot.dq_max  # rad/s: beyond, InputError
         limit = np.array(robot.tau_limit, dtype=float)
         self._tau_limit = np.where(np.isfinite(limit) & (limit > 0), limit, 0.0)  # N·m; 0: none given
@@ -342,8 +346,8 @@ class Controller:
             raise QpnsoError("call Controller.reset(q0) before step()")
         qv = q if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape \
             and q.flags.c_contiguous and q.flags.writeable else as_vector(q, self.robot.nq, "q")
-        if limits_status(qv, self._q_accepted[0], self._q_accepted[1]):
-            self._refuse_q(qv)
+        if (tool_pose is not None or not self.compiled_tick) and limits_status(qv, *self._q_accepted):
+            self._refuse_q(qv)  # (the compiled tick's qp_tick checks q first itself: TICK_Q_REFUSED)
         dq_meas = self._dq_prev if dq is None else self._checked_dq(dq)
         twist = self._no_twist if tool_twist is None else as_vector(tool_twist, 6, "tool_twist")
         if tool_pose is not None:
@@ -414,7 +418,7 @@ class Controller:
         bits |= finish_command(qv, cmd.dq, cmd.q_des, cmd.tau, gravity, self._tau_limit, self.robot.dq_max,
                                self.config.dt, cmd.arm_angle, cmd.rom[0], cmd.rom[1], dropped)
         if bits & FLAG_INTERNAL_ERROR and not cmd.message:
-            cmd.message = "the command was not finite: joints stopped"
+            cmd.message = _NOT_FINITE_MESSAGE
         cmd.status = cmd.status | _status(bits) if bits else cmd.status
         cmd.tick_time = time.perf_counter() - t0
         return cmd
@@ -430,7 +434,7 @@ class Controller:
                               "the arm's state is not finite: joints stopped")
         error = self._pose_error(state)
         lb, ub = self._velocity_bounds(state.q)
-        level1 = Level(A=state.jacobian, b=self._level1_target(twist, error, state))
+        level1 = Level(A=state.jacobian, b=level1_target(twist, error, self._gains, state.tool_drift))
         level2 = self.strategy.level2(state, elbow)
         levels = [level1] if level2 is None else [level1, level2]
         result = self.qp.solve(levels, lb, ub, check=False)  # arrays built here; the answer is still checked
@@ -444,15 +448,6 @@ class Controller:
             tool_error=(_norm(error[:3]), _norm(error[3:])), message=message,
         )
         return self._finish(cmd, qv, state.gravity, 0, t0, elbow.dropped)
-
-    def _level1_target(self, twist: np.ndarray, error: np.ndarray, state: TickState) -> np.ndarray:
-        """Level 1's ``J q̇ = v + K_p e − ½dt·J̇q̇`` (m/s, rad/s; as :func:`qpnso.tick.qp_tick`): the tool twist,
-        the capped pose correction (:func:`qpnso.tick.pose_correction`), and the step's second-order term.
-        Over a tick at q̇ the tool moves by ``dt·J q̇ + ½dt²·J̇q̇``; with J̇q̇ along the predicted command
-        (the previous one with this tick's twist: :func:`qpnso.state.predicted_velocity`) taken out, a
-        null-space motion no longer drags a held tool (it did by about 1.2 µm·(|q̇|/(rad/s))², 8 µm and
-        2e-5 rad for elbow-up's returns in the fuzz), nor does a pull that stops."""
-        return twist + pose_correction(error, self._gains) - self._gains[10] * state.tool_drift
 
     def _begin(self, qv: np.ndarray, twist: np.ndarray) -> tuple[TickState, ElbowState, Status]:
         """The general tick's start: ``q`` checked, the state (made safe; drift along the previous
@@ -480,12 +475,12 @@ class Controller:
             t_interval = time.perf_counter() - t_interval
             tick = self._qp_tick(qv, flat, twist, False)
         code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits = tick
-        if code == TICK_NOT_FINITE:
-            as_vector(qv, self.robot.nq, "q")  # raises, naming the entries
+        if code == TICK_NOT_FINITE or code == TICK_Q_REFUSED:
+            self._refuse_q(qv)  # raises, naming the entries or the joint
         if code == TICK_ELBOW_DROPPED or code == TICK_STATE_NOT_FINITE:
             return None  # the general path drops the elbow, or stops the joints
-        if stale or interval_stale(self._elbow_memory):
-            bits |= FLAG_INTERVAL_STALE
+        if stale:
+            bits |= FLAG_INTERVAL_STALE  # (qp_tick flags a stale interval it finds in the memory itself)
         if code != LINE_OK:
             elbow = ElbowState(ns, (rom_lo, rom_hi), (iv_lo, iv_hi), k, _status(bits & _ELBOW_BITS))
             return self.evaluate.state(qv, flat.copy()), elbow, _status(bits)
@@ -494,23 +489,26 @@ class Controller:
         if v is not None:
             answer = qp_tick_answer(v, buf.line, buf.box_l, buf.box_u, buf.C, buf.l, buf.u,
                                     self.qp.settings.feasibility_tol, flat, self.evaluate.offsets, qv, dq_meas, k,
-                                    self.config.dt, self.config.joint_damping, residual, bits)
+                                    self.config.dt, self.config.joint_damping, residual, bits, self._tau_limit,
+                                    self.robot.dq_max, ns, rom_lo, rom_hi)
         ok = answer is not None and answer[0] == LINE_ANSWER_OK
         self.qp.count_solve(ok)
-        if ok:
+        if ok:  # finished in qp_tick_answer (finish_command): the command as sent
             _, dq_cmd, q_des, tau, bits = answer
-            message = ""
-        else:
-            second = self.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
-            dq_cmd, fallback, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
-            bits |= fallback.value
-            q_des, tau = qp_command(flat, self.evaluate.offsets, qv, dq_cmd, dq_meas, k, self.config.dt,
-                                    self.config.joint_damping)
-        t2 = time.perf_counter()
+            t2 = time.perf_counter()
+            cmd = Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, _status(bits),
+                          t2 - t1 - t_interval, 0.0, (e_pos, e_rot),
+                          _NOT_FINITE_MESSAGE if bits & FLAG_INTERNAL_ERROR else "")
+            cmd.tick_time = time.perf_counter() - t0
+            return cmd
+        second = self.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
+        dq_cmd, fallback, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
+        q_des, tau = qp_command(flat, self.evaluate.offsets, qv, dq_cmd, dq_meas, k, self.config.dt,
+                                self.config.joint_damping)
         cmd = Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, Status.OK,
-                      t2 - t1 - t_interval, 0.0, (e_pos, e_rot), message)
+                      time.perf_counter() - t1 - t_interval, 0.0, (e_pos, e_rot), message)
         o = self.evaluate.offsets
-        return self._finish(cmd, qv, flat[o[9]:o[10]], bits, t0, False)
+        return self._finish(cmd, qv, flat[o[9]:o[10]], bits | fallback.value, t0, False)
 
     def _qp_tick(self, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool) -> tuple:
         """:func:`qpnso.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""

@@ -1048,21 +1048,23 @@ class _ProxSuiteBackend:
             entry.settings.initial_guess = self._cold if entry.cold_next else self._warm
             obj.update(**data)
         obj.solve()
-        settings, results, info = entry.settings, entry.results, entry.info
+        info = entry.info
         out = info.status
+        if out is self._solved:  # the usual tick: nothing else to look at
+            entry.cold_next = False
+            return _Raw(entry.results.x.copy(), LevelStatus.SOLVED, info.iter, self._message(out))  # x: a view
+        settings = entry.settings
         fallback = self._settings.active_set_fallback
-        if out is not self._solved and settings.initial_guess == self._warm and not fallback:
+        if settings.initial_guess == self._warm and not fallback:
             self._stats.cold_retries += 1  # a warm start can fail where a cold one does not (measured)
             settings.initial_guess = self._cold
             obj.init(**data)  # same object; resets its adapted penalties too
             obj.solve()
             out = info.status
         entry.cold_next = out is not self._solved  # a failed result is a bad warm start
-        message = self._messages.get(out)
-        if message is None:
-            message = self._messages[out] = f"proxsuite {out.name}"
+        message = self._message(out)
         if out is self._solved:
-            return _Raw(results.x.copy(), LevelStatus.SOLVED, info.iter, message)  # results.x is a view: copied
+            return _Raw(entry.results.x.copy(), LevelStatus.SOLVED, info.iter, message)
         status = self._status.get(out, LevelStatus.SOLVER_ERROR)
         if not fallback:
             return _Raw(None, status, info.iter, message)
@@ -1071,6 +1073,13 @@ class _ProxSuiteBackend:
         raw = active_set_solve(H, g, C, lo, hi, box_l, box_u, self._settings.max_iter_active_set)
         raw.message = f"{message}; {raw.message}"
         return raw
+
+    def _message(self, out: object) -> str:
+        """``proxsuite <status name>``, formatted once per status."""
+        message = self._messages.get(out)
+        if message is None:
+            message = self._messages[out] = f"proxsuite {out.name}"  # type: ignore[attr-defined]
+        return message
 
     @property
     def qp_objects(self) -> int:

@@ -64,8 +64,8 @@ class StateEvaluator:
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
         self._zero_velocity = np.zeros(robot.nq)
-        self._fn = FastFunction(ca.Function(f"tick_{robot.name}", [sym.q, dq, twist], [stacked],
-                                            ["q", "dq", "twist"], ["state"]), compile)
+        self._fn = FastFunction(ca.Function(f"tick_{robot.name}", [ca.vertcat(sym.q, dq, twist)], [stacked],
+                                            ["q_dq_twist"], ["state"]), compile)  # one input: one copy a tick
         self._zero_twist = np.zeros(6)
         self.offsets = np.cumsum([0] + [part.numel() for part in parts])
         """Start of each part in the stacked vector, and its length at the end (in the order of
@@ -82,7 +82,7 @@ class StateEvaluator:
         dq = self._zero_velocity if dq is None else dq
         if twist is None:
             twist = self._zero_twist if dq is self._zero_velocity else self.robot.jacobian(q) @ dq
-        return self.state(q, self._fn.flat(q, dq, twist))
+        return self.state(q, self._fn.flat(np.concatenate((q, dq, twist))))
 
     def raw(self, q: np.ndarray, dq: np.ndarray, twist: np.ndarray) -> np.ndarray:
         """The stacked state at ``q`` (rad), the previous command ``dq`` (rad/s) and the tool ``twist``

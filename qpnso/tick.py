@@ -51,6 +51,9 @@ was done (the caller stops the joints)."""
 TICK_QP_NOT_FINITE = 8
 """A code of :func:`qp_tick`: the level-2 line QP is not finite; the elbow advanced, the general path goes on
 (and refuses that QP)."""
+TICK_Q_REFUSED = 9
+"""A code of :func:`qp_tick`: ``q`` is beyond its limits by more than the accepted tolerance (rows 5, 6 of
+``limits``); nothing was done (the caller raises :class:`~qpnso.errors.InputError`)."""
 TICK_NEED_INTERVAL = 6
 """A code of :func:`qp_tick`: the elbow memory advanced and the continuity interval must be recomputed
 (:func:`store_interval`), then :func:`qp_tick` called again with ``advance`` False."""
@@ -111,6 +114,17 @@ def pose_correction(e, gains):  # type: ignore[no-untyped-def]
             for i in range(start, start + 3):
                 out[i] *= cap / norm
     return out
+
+
+@njit(cache=True)
+def level1_target(twist, e, gains, drift):  # type: ignore[no-untyped-def]
+    """Level 1's right-hand side ``v + K_p e − ½dt·J̇q̇`` (m/s, rad/s; world frame, tool point): the tool
+    twist, the capped pose correction (:func:`pose_correction`) and the step's second-order term (``drift``
+    J̇q̇ along the predicted command, ``gains[10]`` = ½dt).  Over a tick at q̇ the tool moves by
+    ``dt·J q̇ + ½dt²·J̇q̇``; with J̇q̇ taken out, a null-space motion no longer drags a held tool (it did by
+    about 1.2 µm·(|q̇|/(rad/s))², 8 µm and 2e-5 rad for elbow-up's returns in the fuzz), nor does a pull
+    that stops (:func:`qpnso.state.predicted_velocity`)."""
+    return twist + pose_correction(e, gains) - gains[10] * drift
 
 
 @njit(cache=True)
@@ -258,7 +272,8 @@ def interval_failed(memory: np.ndarray) -> None:
     memory[IV_AGE] = 0.0
 
 
-def interval_stale(memory: np.ndarray) -> bool:
+@njit(cache=True)
+def interval_stale(memory):  # type: ignore[no-untyped-def]
     """Whether the elbow memory holds no continuity interval, or one whose renewal failed
     (:func:`interval_failed`): ``INTERVAL_STALE`` on every tick until a renewal succeeds."""
     return memory[IV_KNOWN] != 1.0
@@ -365,8 +380,8 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     """The ``qp`` strategy's tick up to its level-2 QP, in one call: the compiled tick (module doc).
 
     ``flat`` the stacked CasADi state at ``q`` (:class:`qpnso.state.StateEvaluator`, cut at
-    ``offsets``); ``limits`` (5, n) the rows q_low, q_high (``q`` as checked), q_min, q_max (rad),
-    dq_max (rad/s); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
+    ``offsets``); ``limits`` (7, n) the rows q_low, q_high (``q`` as checked), q_min, q_max (rad),
+    dq_max (rad/s), the accepted q_low, q_high (rad: beyond, :data:`TICK_Q_REFUSED`); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
     ROM centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
     ``gains`` = (pose gain K_p 1/s, joint-limit gain 1/s, cost gain, null-space speed max rad/s, filter α,
     elbow gain 1/s, slack scale 1/√(2ρ), recovery speed rad/s, pose correction's speed caps m/s and rad/s,
@@ -387,6 +402,8 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     limit = limits_status(q, limits[0], limits[1])
     if limit == 2:
         return (TICK_NOT_FINITE,) + nothing[1:]
+    if limit == 1 and limits_status(q, limits[5], limits[6]):
+        return (TICK_Q_REFUSED,) + nothing[1:]
     n = q.shape[0]
     unsafe = sanitize_state(flat, offsets)
     if unsafe & FLAG_INTERNAL_ERROR:
@@ -402,12 +419,14 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     ns = memory[NS]
     rom_lo, rom_hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, ns0, elbow)
     bits = unsafe | (FLAG_Q_OUT_OF_LIMITS if limit == 1 else 0) | (FLAG_ROM_EMPTY if empty else 0)
+    if interval_stale(memory):
+        bits |= FLAG_INTERVAL_STALE
     e, ok = pose_error(R, p, R_ref, p_ref)  # level 1: J q̇ = twist + K_p e
     e_pos = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
     e_rot = math.sqrt(e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
     if not ok:
         return LINE_NO_POSE, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, 0.0, cost, bits
-    b1 = twist + pose_correction(e, gains) - gains[10] * drift  # second-order term (Controller.step)
+    b1 = level1_target(twist, e, gains, drift)
     rank_tol, damping, reg = qp_tol[0], qp_tol[1], qp_tol[2]
     lb, ub = velocity_bounds(q, limits[2], limits[3], limits[4], gains[1], gains[7])
     code, x0, d, t_lo, t_hi = task_line(J, b1, lb, ub, rank_tol, damping)
@@ -428,13 +447,18 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
 
 @njit(cache=True)
 def qp_tick_answer(v, line, box_l, box_u, C, l, u, feasibility_tol, flat, offsets, q, dq_meas, stiffness, dt,
-                   damping, residual, bits):  # type: ignore[no-untyped-def]
+                   damping, residual, bits, tau_limit, dq_max, ns, rom_lo, rom_hi):  # type: ignore[no-untyped-def]
     """The compiled tick after its level-2 QP: the answer ``v = [t; σ]`` judged
-    (:func:`qpnso.hqp.checked_line_answer`) and the command.  Returns ``(code, dq rad/s, q_des rad,
-    τ N·m, status bits)`` (``bits`` plus :func:`answer_bits`); ``code`` ≠ :data:`qpnso.hqp.LINE_ANSWER_OK`:
-    the answer is refused (the caller falls back), the arrays are then meaningless."""
+    (:func:`qpnso.hqp.checked_line_answer`), the command, and every tick's last step
+    (:func:`finish_command`, g(q) from ``flat``).  Returns ``(code, dq rad/s, q_des rad, τ N·m, status
+    bits)`` (``bits`` plus :func:`answer_bits` and the finishing bits); ``code`` ≠
+    :data:`qpnso.hqp.LINE_ANSWER_OK`: the answer is refused (the caller falls back), the arrays are then
+    meaningless."""
     code, x, _, slack = checked_line_answer(v, line[1], line[0], box_l, box_u, C, l, u, 1, feasibility_tol)
     if code != LINE_ANSWER_OK:
         return code, x, x, x, bits
     q_des, tau = qp_command(flat, offsets, q, x, dq_meas, stiffness, dt, damping)
-    return code, x, q_des, tau, bits | answer_bits(residual, slack.max())
+    bits |= answer_bits(residual, slack.max())
+    bits |= finish_command(q, x, q_des, tau, flat[offsets[9]:offsets[10]], tau_limit, dq_max, dt, ns, rom_lo,
+                           rom_hi, False)
+    return code, x, q_des, tau, bits

@@ -51,6 +51,25 @@ def test_q_in_degrees_is_refused_naming_the_joint_in_both_units(controllers) -> 
         ctrl.step(np.degrees(Q1))
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_refused_q_changes_nothing(robot, compiled: bool) -> None:
+    """A q beyond the tolerance is refused by either path (the compiled tick checks it in its kernel) before
+    anything changes: the reference, the elbow memory and the next command are those of a controller that
+    never saw it, with or without a new ``tool_pose`` in the refused call."""
+    a, b = (Controller(robot, ControllerConfig(compiled_tick=compiled)) for _ in range(2))
+    for ctrl in (a, b):
+        ctrl.reset(Q1)
+    moved = robot.tool_pose(Q1)
+    moved.translation = moved.translation + 0.05
+    for kwargs in ({}, {"tool_pose": moved}):
+        with pytest.raises(qpnso.InputError, match=r"q\[3\].*outside its limits"):
+            a.step(Q1 + np.radians([0, 0, 0, 200, 0, 0, 0]), **kwargs)
+    np.testing.assert_array_equal(a.ref_position, b.ref_position)
+    x, y = a.step(Q1, tool_twist=[0.01, 0, 0, 0, 0, 0]), b.step(Q1, tool_twist=[0.01, 0, 0, 0, 0, 0])
+    assert x.status == y.status
+    np.testing.assert_array_equal(x.dq, y.dq)
+
+
 @pytest.mark.parametrize("strategy", STRATEGIES)
 def test_reset_forgets_everything(robot, controllers, strategy: str) -> None:
     """After any history, ``reset(q)`` answers exactly as a new controller (warm starts included)."""

@@ -29,6 +29,7 @@ for tick in range(1000):  # one second
     # send(cmd.q_des) to a position-controlled arm, or send(cmd.tau) to a torque-controlled one
     q = cmd.q_des  # stand-in for the robot following the set-point
 
+gc.unfreeze()  # the loop is over: objects frozen at exit would never be finalised
 drift = np.linalg.norm(robot.tool_pose(q).translation - start.translation)
 print(f"arm angle {np.degrees(cmd.arm_angle):.2f} deg in ROM_t {np.degrees(cmd.rom).round(2)} deg, "
       f"cost {cmd.cost:.4f}, tool drift {drift:.1e} m, last tick {1e6 * cmd.tick_time:.0f} µs")

@@ -561,3 +561,48 @@ print([k.__name__ for k in kernels if len(k.signatures) != 1], qp.stats == h.HQP
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip().splitlines()[-1] == "[] True 0"
+
+
+@pytest.mark.parametrize("soft", [True, False])
+@pytest.mark.parametrize("seed", range(6))
+def test_a_level_answer_is_judged_in_joint_space(seed, soft):
+    """The check of a level's answer (``level_answer`` kernel) against joint space, by NumPy: ``x = x_prev + Z z``;
+    accepted iff the joint bounds and the hard rows hold within ``feasibility_tol``; a soft row's slack is its
+    violation at x.  Answers perturbed across a bound or a row are refused as ``INACCURATE``."""
+    from qpnso.hqp import _Raw, _trusted_level
+
+    levels, lb, ub = random_problem(seed)
+    levels[1].C = np.vstack([levels[1].C, np.random.default_rng(seed).standard_normal((1, N))])
+    levels[1].l, levels[1].u = np.r_[levels[1].l, -0.3], np.r_[levels[1].u, 0.3]
+    hqp = HierarchicalQP(N)
+    res = hqp.solve(levels, lb, ub)
+    if not soft:  # hard rows around the soft answer's row values: feasible, and bind within 0.05
+        rows = levels[1].C @ res.x
+        levels[1].l, levels[1].u, levels[1].slack_weight = rows - 0.05, rows + 0.05, None
+        res = hqp.solve(levels, lb, ub)
+    assert res.ok
+    data = [_trusted_level(level) for level in levels]
+    c1 = advance_cascade(levels[0], Cascade.start(lb, ub), build_level_qp(levels[0], Cascade.start(lb, ub)),
+                         res.levels[0].x)
+    qp2 = build_level_qp(data[1], c1)
+    rng = np.random.default_rng(seed)
+    tol = hqp.settings.feasibility_tol
+    outcomes = set()
+    z_star = c1.Z.T @ (res.x - c1.x)  # the cascade's own answer: feasible
+    for k in range(40):
+        z = z_star + (0.0 if k == 0 else rng.uniform(-5.0, 5.0, 1) * 10.0 ** -rng.integers(0, 4))
+        v = np.r_[z, np.zeros(qp2.n_slack)]
+        x = c1.x + c1.Z @ z
+        rows = levels[1].C @ x
+        violation = np.maximum(levels[1].l - rows, rows - levels[1].u)
+        feasible = bool(np.all(x >= lb - tol) and np.all(x <= ub + tol) and (soft or np.all(violation <= tol)))
+        got = hqp._check(data[1], qp2, _Raw(v, LevelStatus.SOLVED, 1, "test"))
+        assert got.ok == feasible, (x, got.message)
+        outcomes.add(feasible)
+        if got.ok:
+            np.testing.assert_allclose(got.x, x, atol=1e-12)
+            if soft:
+                np.testing.assert_allclose(got.slack, np.maximum(violation, 0.0), atol=1e-12)  # its violation
+        else:
+            assert got.status is LevelStatus.INACCURATE and "violated by" in got.message
+    assert outcomes == {True, False}  # both kinds of answer were judged

@@ -100,7 +100,7 @@ def test_tool_held_five_seconds(lwr_qp: Controller, lwr_gradient: Controller, se
     centre = len(grid) // 2
     if not at_bound:
         assert values[centre] <= values.min() + 1e-6 * max(1.0, abs(values[centre]))
-    if not at_bound and seed % 4 == 0:  # (15 s of ticks each: five seeds keep the suite short)
+    if not at_bound and seed % 8 == 0:  # (15 000 ticks, 9 s each: three seeds keep the suite under 5 min)
         # the gradient baseline converges to the same minimum
         qg, _ = run_held(lwr_gradient, q0, 15000)  # capped at nullspace_speed_max like qp: slower early on
         assert abs(qpnso.arm_angle(robot, qg) - qpnso.arm_angle(robot, q)) < np.radians(0.5)

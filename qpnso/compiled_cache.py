@@ -43,10 +43,10 @@ log = logging.getLogger(__name__)
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 
-NUMBA_COLD_SECONDS = 50.0
+NUMBA_COLD_SECONDS = 60.0
 """s: compiling every kernel the control tick uses, once per machine and kernel sources (measured:
-``Controller(load_robot('lwr4p'))`` with empty caches and ``QPNSO_COMPILE=off``: 48–53 s of CPU,
-64–100 s of wall time on a busy 2-core machine)."""
+``Controller(load_robot('lwr4p'))`` with empty caches and ``QPNSO_COMPILE=off``: 62 s of CPU, 65 s of
+wall time on an idle 2-core machine, since the general cascade's level kernels; 48–53 s before)."""
 
 C_BYTES_PER_SECOND = 25_000.0
 """Bytes of CasADi-generated C that ``cc -O1`` compiles per second (measured for the LWR4+'s three

@@ -43,11 +43,6 @@ log = logging.getLogger(__name__)
 COMPILE_MODES = ("background", "sync", "off")
 
 
-def cache_dir() -> Path:
-    """Folder of the compiled shared libraries (:func:`qpnso.compiled_cache.cache_root`)."""
-    return cache_root()
-
-
 def compile_mode(mode: str | None = None) -> str:
     m = mode or os.environ.get("QPNSO_COMPILE", "background")
     if m not in COMPILE_MODES:
@@ -129,7 +124,7 @@ def start_compile(fn: ca.Function, background: bool = False) -> CompileJob:
         log.warning("qpnso: cannot generate C code for %s (%s); CasADi virtual machine used", name, exc)
         return CompileJob(name, None)
     key = hashlib.sha256(source + compiler.encode() + ca.__version__.encode()).hexdigest()[:20]
-    folder = cache_dir()
+    folder = cache_root()
     lib = folder / f"{name}_{key}.so"
     if lib.is_file():
         return CompileJob(name, lib)
@@ -160,14 +155,6 @@ def start_compile(fn: ca.Function, background: bool = False) -> CompileJob:
     announce_compile(f"{name} in the background" if background else name, len(source) / C_BYTES_PER_SECOND,
                      "C, once per model")
     return CompileJob(name, lib, proc)
-
-
-def compile_function(fn: ca.Function) -> ca.Function | None:
-    """A compiled copy of ``fn`` (from the disk cache when possible), or None.
-
-    None means no C compiler worked; the reason is logged.
-    """
-    return start_compile(fn).result()
 
 
 def _running(job: Path) -> bool:
@@ -247,12 +234,6 @@ class FastFunction:
         with self._lock:
             self._run(inputs)
             return tuple(self._result(k) for k in range(len(self._out)))
-
-    def flat(self, *inputs: np.ndarray) -> np.ndarray:
-        """The first output's entries (column-major), a fresh copy: one array for a stacked output."""
-        with self._lock:
-            self._run(inputs)
-            return self._out[0].copy()
 
     def evaluate_in_place(self, *parts: np.ndarray) -> np.ndarray:
         """For a function of one dense vector input, given as ``parts`` to be placed one after another

@@ -69,6 +69,16 @@ def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Sta
 _NOT_FINITE_MESSAGE = "the command was not finite: joints stopped"
 
 
+def _stamped(cmd: "Command", bits: int, t0: float) -> "Command":
+    """A finished command (:func:`qpnso.tick.finish_command` done) given its status ``bits``, the stop
+    message if they say the command was not finite, and its tick time since ``t0``."""
+    if bits & FLAG_INTERNAL_ERROR and not cmd.message:
+        cmd.message = _NOT_FINITE_MESSAGE
+    cmd.status = cmd.status | _status(bits) if bits else cmd.status
+    cmd.tick_time = time.perf_counter() - t0
+    return cmd
+
+
 def _status(bits: int) -> "Status":
     """The :class:`Status` of a kernel's status bits (``Status.OK``, without a lookup, for none)."""
     return Status(bits) if bits else Status.OK
@@ -417,11 +427,7 @@ class Controller:
         and the tick time set."""
         bits |= finish_command(qv, cmd.dq, cmd.q_des, cmd.tau, gravity, self._tau_limit, self.robot.dq_max,
                                self.config.dt, cmd.arm_angle, cmd.rom[0], cmd.rom[1], dropped)
-        if bits & FLAG_INTERNAL_ERROR and not cmd.message:
-            cmd.message = _NOT_FINITE_MESSAGE
-        cmd.status = cmd.status | _status(bits) if bits else cmd.status
-        cmd.tick_time = time.perf_counter() - t0
-        return cmd
+        return _stamped(cmd, bits, t0)
 
     def _general(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float,
                  started: tuple | None = None) -> Command:
@@ -467,11 +473,11 @@ class Controller:
         status)`` for the general path to go on from; or None when nothing was done (singular arm angle)."""
         flat = self.evaluate.raw(qv, self._dq_prev, twist)
         t1 = time.perf_counter()
-        buf, stale = self._line, False
+        buf = self._line
         tick, t_interval = self._qp_tick(qv, flat, twist, True), 0.0
         if tick[0] == TICK_NEED_INTERVAL:  # (its time is not the QP's)
             t_interval = time.perf_counter()
-            stale = self._update_interval(qv, flat[:12])
+            self._update_interval(qv, flat[:12])  # (qp_tick then flags a stale interval itself)
             t_interval = time.perf_counter() - t_interval
             tick = self._qp_tick(qv, flat, twist, False)
         code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits = tick
@@ -479,8 +485,6 @@ class Controller:
             self._refuse_q(qv)  # raises, naming the entries or the joint
         if code == TICK_ELBOW_DROPPED or code == TICK_STATE_NOT_FINITE:
             return None  # the general path drops the elbow, or stops the joints
-        if stale:
-            bits |= FLAG_INTERVAL_STALE  # (qp_tick flags a stale interval it finds in the memory itself)
         if code != LINE_OK:
             elbow = ElbowState(ns, (rom_lo, rom_hi), (iv_lo, iv_hi), k, _status(bits & _ELBOW_BITS))
             return self.evaluate.state(qv, flat.copy()), elbow, _status(bits)
@@ -495,12 +499,9 @@ class Controller:
         self.qp.count_solve(ok)
         if ok:  # finished in qp_tick_answer (finish_command): the command as sent
             _, dq_cmd, q_des, tau, bits = answer
-            t2 = time.perf_counter()
-            cmd = Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, _status(bits),
-                          t2 - t1 - t_interval, 0.0, (e_pos, e_rot),
-                          _NOT_FINITE_MESSAGE if bits & FLAG_INTERNAL_ERROR else "")
-            cmd.tick_time = time.perf_counter() - t0
-            return cmd
+            cmd = Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, Status.OK,
+                          time.perf_counter() - t1 - t_interval, 0.0, (e_pos, e_rot), "")
+            return _stamped(cmd, bits, t0)
         second = self.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
         dq_cmd, fallback, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
         q_des, tau = qp_command(flat, self.evaluate.offsets, qv, dq_cmd, dq_meas, k, self.config.dt,
@@ -559,21 +560,22 @@ class Controller:
             k = float(stiffness(ns, self.ns0, self.elbow_config))
             return ElbowState(ns, (ns, ns), (ns - np.pi, ns + np.pi), k, Status.ELBOW_DROPPED, dropped=True)
         ns, recompute = elbow_advance(state.arm_angle, state.pose, memory, params[P_PERIOD], params[P_MOVED_TOL])
-        stale = self._update_interval(state.q, state.pose) if recompute else interval_stale(memory)
+        if recompute:
+            self._update_interval(state.q, state.pose)
+        stale = interval_stale(memory)
         lo, hi, empty, iv_lo, iv_hi, k = elbow_bounds(ns, memory, self.ns0, params)
         bits = (FLAG_INTERVAL_STALE if stale else 0) | (FLAG_ROM_EMPTY if empty else 0)
         return ElbowState(ns, (lo, hi), (iv_lo, iv_hi), k, _status(bits))
 
-    def _update_interval(self, q: np.ndarray, pose: np.ndarray) -> bool:
-        """Recompute the continuity interval [E 9] at ``q`` into the elbow memory; True (stale) when it
-        cannot be: the previous one (or, before any, the full circle) stands."""
+    def _update_interval(self, q: np.ndarray, pose: np.ndarray) -> None:
+        """Recompute the continuity interval [E 9] at ``q`` into the elbow memory; when it cannot be, the
+        previous one (or, before any, the full circle) stands, marked stale (:func:`qpnso.tick.interval_stale`)."""
         try:
             interval = continuity_interval(self.robot, q)
         except QpnsoError:
             interval_failed(self._elbow_memory)
-            return True
+            return
         store_interval(self._elbow_memory, interval.lo, interval.hi, interval.full_circle, pose)
-        return False
 
     def _command_velocity(self, result) -> tuple[np.ndarray, Status, str]:
         """The QP's answer, or the safe fallback: level-1 solution, else zero."""

@@ -38,7 +38,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.errors import InputError, ModelError, SingularityError, UnreachableError
-from qpnso.robot import Robot, as_vector
+from qpnso.robot import POSE_NOT_FINITE, POSE_NOT_ROTATION, Robot, as_vector, pose_defect
 from qpnso.symbolic import SymbolicModel, joint_kind_and_axis
 
 Z0 = np.array([0.0, 0.0, 1.0])
@@ -417,10 +417,11 @@ def as_pose(pose: object) -> pin.SE3:
             raise InputError(f"pose must be a pinocchio.SE3 or a 4x4 matrix, got {type(pose).__name__}") from None
         if h.shape != (4, 4):
             raise InputError(f"pose must be a pinocchio.SE3 or a 4x4 matrix, got shape {h.shape}")
-    if not np.all(np.isfinite(h)):
-        raise InputError("pose contains NaN or inf")
     rot = h[:3, :3]
-    if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-6 or np.linalg.det(rot) < 0:
+    defect = pose_defect(rot, h[:3, 3]) if np.all(np.isfinite(h[3])) else POSE_NOT_FINITE
+    if defect == POSE_NOT_FINITE:
+        raise InputError("pose contains NaN or inf")
+    if defect == POSE_NOT_ROTATION:
         raise InputError("pose rotation is not a rotation matrix")
     return pin.SE3(rot.copy(), h[:3, 3].copy())
 

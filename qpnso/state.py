@@ -4,7 +4,7 @@ One compiled CasADi function evaluates, from ``q`` alone, the tool pose, the
 tool Jacobian, the weighted cost and its exact gradient, the arm angle with its
 exact gradient and singularity measures, the dynamics a torque command needs
 (``A(q)``, ``g(q)``), and the tool's second-order motion ``J̇(q, q̇)q̇`` along the
-previous command (level 1's second-order term): one call per tick instead of
+command predicted for the tick (level 1's second-order term, :func:`predicted_velocity`): one call per tick instead of
 eight (:class:`StateEvaluator`).
 """
 
@@ -82,7 +82,7 @@ class StateEvaluator:
         dq = self._zero_velocity if dq is None else dq
         if twist is None:
             twist = self._zero_twist if dq is self._zero_velocity else self.robot.jacobian(q) @ dq
-        return self.state(q, self._fn.flat(np.concatenate((q, dq, twist))))
+        return self.state(q, self._fn.evaluate_in_place(q, dq, twist).copy())
 
     def raw(self, q: np.ndarray, dq: np.ndarray, twist: np.ndarray) -> np.ndarray:
         """The stacked state at ``q`` (rad), the previous command ``dq`` (rad/s) and the tool ``twist``

@@ -94,13 +94,17 @@ class FixedPosture(Strategy):
         return self.cfg.posture_stiffness * (self.q_ref - state.q) - self.cfg.joint_damping * dq_meas
 
 
+def clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
+    """``v`` scaled to Euclidean norm at most ``limit`` (``v`` itself when within it)."""
+    norm = float(np.sqrt(v @ v))
+    return v * (limit / norm) if norm > limit else v
+
+
 def capped(velocity: np.ndarray, cfg: "ControllerConfig") -> np.ndarray:
     """A kinematic level-2 target (rad/s) scaled to norm at most ``nullspace_speed_max``, as the ``qp``
     strategy's cost step is: a posture far away is approached at a bounded speed (an elbow-up return
     once asked 6 rad/s of the arm angle, and dragged the held tool by 8 µm)."""
-    norm = float(np.sqrt(velocity @ velocity))
-    limit = cfg.nullspace_speed_max
-    return velocity * (limit / norm) if norm > limit else velocity
+    return clip_norm(velocity, cfg.nullspace_speed_max)
 
 
 def filter_alpha(time_constant: float, dt: float) -> float:

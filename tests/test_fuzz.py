@@ -254,3 +254,11 @@ def test_realtime_gc_freezes_for_the_block_and_unfreezes() -> None:
     with realtime_gc():
         assert gc.get_freeze_count() > 1000  # the objects alive now are out of the collector's generations
     assert gc.get_freeze_count() == 0
+
+
+def test_a_config_that_could_not_send_bad_inputs_is_refused() -> None:
+    """No probe kinds or bursts of at most zero would crash the first burst (``rng.integers``): a ConfigError."""
+    with pytest.raises(qpnso.ConfigError, match="probe kinds"):
+        FuzzConfig(probe_kinds=())
+    with pytest.raises(qpnso.ConfigError, match="probe_burst_max"):
+        FuzzConfig(probe_burst_max=0)

@@ -3,7 +3,7 @@
 The tool stays the surgeon's (level 1 of a hierarchical QP); the rest of the arm
 moves so that the tool feels light (mass and friction costs, level 2) and the
 elbow stays in its range of motion, clipped to the arm-angle interval the joint
-limits allow.  See METHOD.md for the equations each module implements.
+limits allow.  See docs/method.md for the equations each module implements.
 """
 
 __version__ = "0.1.0"

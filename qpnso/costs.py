@@ -1,18 +1,18 @@
 """Mass, inertia and friction costs felt at the tool, with exact derivatives.
 
-The measures of the mass/friction paper (METHOD §2–3), as CasADi expressions of
+The measures of the mass/friction paper (docs/method.md §2–3), as CasADi expressions of
 ``q`` built once per robot from :class:`qpnso.symbolic.SymbolicModel`:
 
-* ``Λv⁻¹ = Jv A⁻¹ Jvᵀ``, ``Λw⁻¹ = Jw A⁻¹ Jwᵀ`` [M 1]–[M 4] (3×3, 1/kg and
+* ``Λv⁻¹ = Jv A⁻¹ Jvᵀ``, ``Λw⁻¹ = Jw A⁻¹ Jwᵀ`` [M 2] (3×3, 1/kg and
   1/(kg·m²)), with ``J`` the world-aligned tool Jacobian;
 * mass ``c_m = -det(Λv⁻¹)`` and inertia ``c_i = -det(Λw⁻¹)`` [M 8];
 * friction force ``c_f = Σ_i ‖J̄vᵀ τf(J̄v s e_i)‖²`` [M 13], [M 15] (N²) and
   friction torque ``c_τ = Σ_i ‖J̄wᵀ τf(J̄w s_w e_i)‖²`` [M 16] (N²·m²), with the
-  dynamically consistent inverses ``J̄ = A⁻¹ Jᵀ Λ`` [M 5]–[M 6], the potential
+  dynamically consistent inverses ``J̄ = A⁻¹ Jᵀ Λ`` [M 2], the potential
   speeds ``s`` (m/s), ``s_w`` (rad/s) and the smooth Coulomb model [M 23];
 * the weighted total ``c = Σ_k w_k c_k / scale_k`` [M 18].
 
-The terms have different units, so by default each is divided by its mean
+The terms have different units, so by default each is divided by its median
 magnitude over random configurations of the robot (``CostModel.scales``):
 weights of 1 and 1 then mean "50 % mass, 50 % friction" as in the paper.
 """
@@ -66,7 +66,7 @@ class CostWeights:
 
 @dataclass(frozen=True)
 class ToolExpressions:
-    """CasADi expressions of the quantities of METHOD §2 at the tool point."""
+    """CasADi expressions of the quantities of docs/method.md §2 at the tool point."""
 
     lambda_inv_v: ca.SX  # Λv⁻¹ (3×3, 1/kg)
     lambda_inv_w: ca.SX  # Λw⁻¹ (3×3, 1/(kg·m²))
@@ -109,7 +109,7 @@ class CostModel:
     ``potential_speed`` (m/s) is the tool speed ``s`` of [M 13] (0.05 m/s in the
     paper); ``potential_angular_speed`` (rad/s) is ``s_w`` for the friction
     torque (our choice: 0.5 rad/s).  ``scales`` fixes the normaliser of each
-    term; by default it is the mean |term| over ``n_scale_samples`` random
+    term; by default it is the median |term| over ``n_scale_samples`` random
     configurations (seed 0), or 1 with ``normalize=False``.  ``compile``
     chooses how the value/gradient function is evaluated (see
     :mod:`qpnso.codegen`; default from ``QPNSO_COMPILE``).
@@ -179,7 +179,7 @@ class CostModel:
         return out
 
     def _sampled_scales(self, n: int) -> dict[str, float]:
-        """Mean |term| over ``n`` random configurations (seed 0, 0.1 rad inside limits)."""
+        """Median |term| over ``n`` random configurations (seed 0, 0.1 rad inside limits)."""
         rng = np.random.default_rng(0)
         qs = np.array([self.robot.random_q(rng, margin=0.1) for _ in range(n)]).T
         values = np.abs(np.array(self._terms_sym.map(n)(qs)))
@@ -230,7 +230,7 @@ class CostModel:
         return np.array(self._hvp_fn(self._q(q), vv)).reshape(-1)
 
     def terms(self, q: object) -> dict[str, float]:
-        """Unweighted, unscaled measures c_m, c_i, c_f, c_τ of METHOD §3."""
+        """Unweighted, unscaled measures c_m, c_i, c_f, c_τ of docs/method.md §3."""
         (values,) = self._terms_fn(self._q(q))
         return {t: float(v) for t, v in zip(TERMS, values)}
 

@@ -1,4 +1,4 @@
-"""The elbow of a 7-DOF arm: arm angle, S-R-S geometry and closed-form IK (METHOD §4).
+"""The elbow of a 7-DOF arm: arm angle, S-R-S geometry and closed-form IK (docs/method.md §4).
 
 Arm angle [E 2]–[E 4], world frame, ``z0`` the world vertical::
 
@@ -204,7 +204,7 @@ def arm_angle_status(
     wrist_cone_deg: float = WRIST_CONE_DEG,
     elbow_offset_min: float = ELBOW_OFFSET_MIN_M,
 ) -> ArmAngle:
-    """Arm angle of configuration ``q`` (rad) with a singularity status (METHOD §4)."""
+    """Arm angle of configuration ``q`` (rad) with a singularity status (docs/method.md §4)."""
     qv = as_vector(q, robot.nq, "q")
     pin.forwardKinematics(robot.model, robot.data, qv)
     return _status_after_fk(robot, wrist_cone_deg, elbow_offset_min)
@@ -572,7 +572,7 @@ def self_motion(robot: Robot, pose: object, branch_: object) -> SelfMotion:
 
 
 def ik(robot: Robot, pose: object, ns: object, branch_: object) -> np.ndarray:
-    """Closed-form IK of an S-R-S arm (METHOD §4): joints (rad) for tool pose, arm angle, branch.
+    """Closed-form IK of an S-R-S arm (docs/method.md §4): joints (rad) for tool pose, arm angle, branch.
 
     ``ns`` may be a scalar (returns (7,)) or an array of N arm angles (returns
     (N, 7)).  Joint limits are not checked.  UnreachableError if the pose is out

@@ -1,4 +1,4 @@
-"""Joint-limit continuity intervals of the arm angle (METHOD §5, [E 7]–[E 9]).
+"""Joint-limit continuity intervals of the arm angle (docs/method.md §5, [E 7]–[E 9]).
 
 With the tool pose and the branch held, each joint is a function ``θ_k(ns)``
 (:class:`qpnso.elbow.SelfMotion`).  ``Ψ_k`` is the set of arm angles where joint

@@ -1,4 +1,4 @@
-"""Run metrics of the papers (METHOD §9), pure NumPy, robot-independent.
+"""Run metrics of the papers (docs/method.md §9), pure NumPy, robot-independent.
 
 Angles in rad unless a name ends in ``_deg``; positions in m (world frame);
 times in s; forces in N.  Every function checks its input and raises

@@ -7,7 +7,7 @@ Conventions (Pinocchio's):
 * ``q`` in rad, ``dq`` in rad/s, torques in N·m;
 * the tool Jacobian is ``LOCAL_WORLD_ALIGNED``: the 6×nq matrix that maps ``dq``
   to the tool point's linear velocity (rows 0–2, m/s) and the tool's angular
-  velocity (rows 3–5, rad/s), both expressed in the world frame (METHOD §2).
+  velocity (rows 3–5, rad/s), both expressed in the world frame (docs/method.md §2).
 """
 
 from __future__ import annotations

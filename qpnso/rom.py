@@ -1,5 +1,5 @@
 """Elbow range of motion (ROM), its clipping to the continuity interval, stiffness
-and set-point (METHOD §6, [E 5], [E 6], [E 10], [E 11]).
+and set-point (docs/method.md §6, [E 5], [E 6], [E 10], [E 11]).
 
 Angles are in rad in the functions; :class:`ElbowConfig` takes degrees for
 convenience (``*_deg`` fields) and converts once (``*_rad`` properties).

@@ -1,4 +1,4 @@
-"""The elbow paper's hands-on scenarios A and B ([E] II-D, METHOD §9).
+"""The elbow paper's hands-on scenarios A and B ([E] II-D, docs/method.md §9).
 
 A scenario file (TOML, ``examples/scenarios/*.toml``) gives the robot, the tool
 pose at the centre of the guidance path, the start arm angle and branch (the

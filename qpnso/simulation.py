@@ -1,9 +1,9 @@
 """Hands-on guidance simulation: the surgeon's hand pulls the tool, the robot
-compensates gravity and applies a strategy's null-space torque (METHOD §9).
+compensates gravity and applies a strategy's null-space torque (docs/method.md §9).
 
 Joint dynamics ``A(q) q̈ + h(q, q̇) = τ + Jᵀ w_hand − τf(q̇)`` are integrated
-with Pinocchio's ABA at ``substeps`` × the control rate (semi-implicit Euler:
-velocity first, then position), the torque command held over a control tick
+at ``substeps`` × the control rate by a linearly implicit Euler step (Pinocchio's
+CRBA and non-linear effects; velocity first, then position: :func:`_integrate`), the torque command held over a control tick
 (zero-order hold).  Joint friction is the robot's smooth Coulomb model [M 23].
 Each joint gets a reflected rotor inertia (``armature``, 0.1 kg·m² by default:
 the URDF links alone give the wrist joints ~1e-4 kg·m², which no 1 kHz
@@ -94,7 +94,7 @@ def simulate(controller: Controller, path: Trajectory, q0: np.ndarray,
 
     Returns the per-tick arrays of :data:`qpnso.solve.RESULT_KEYS` plus
     ``dq_measured`` (rad/s), ``hand_wrench`` (N, N·m) and ``tool_twist``
-    (m/s, rad/s), and the run's summary (metrics of METHOD §9, felt mass and
+    (m/s, rad/s), and the run's summary (metrics of docs/method.md §9, felt mass and
     friction every 10 ticks).
     """
     cfg = config or SimulationConfig()

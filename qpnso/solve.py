@@ -241,7 +241,7 @@ class Recorder:
             self.messages.append(f"t={t:.3f}s: {cmd.message}")
 
     def result(self) -> RunResult:
-        """The arrays and their summary (METHOD §9 metrics, status counts, felt mass and friction)."""
+        """The arrays and their summary (docs/method.md §9 metrics, status counts, felt mass and friction)."""
         from qpnso.controller import Status
         from qpnso.metrics import summarize_run
 

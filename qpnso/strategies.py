@@ -1,4 +1,4 @@
-"""Redundancy strategies: qpnso's QP and the papers' baselines (METHOD §7–8).
+"""Redundancy strategies: qpnso's QP and the papers' baselines (docs/method.md §7–8).
 
 A strategy says two things each tick, given the arm's state and the elbow's:
 
@@ -62,7 +62,7 @@ class Strategy:
 
     def nullspace_torque(self, state: "TickState", elbow: "ElbowState", dq_cmd: np.ndarray,
                          dq_meas: np.ndarray) -> np.ndarray:
-        """DP: τ = −D q̇ with D = ``joint_damping`` (10 N·m·s/rad in both papers)."""
+        """DP: τ = −D q̇ with D = ``joint_damping`` (10 N·m·s/rad, the elbow paper's)."""
         return -self.cfg.joint_damping * dq_meas
 
 
@@ -149,7 +149,7 @@ class Gradient(Strategy):
 
     ``ω_des = −k_p ∇c / k_d``, ``v_d = min(1, ω_max/‖ω_des‖)``,
     ``F_p = −k_d (q̇ − v_d ω_des)``; kinematically level 2 asks ``q̇ = v_d ω_des`` (:func:`capped` at
-    ``nullspace_speed_max``: the torque law keeps [M 21]'s ω_max, but a kinematic jump from rest to 10 rad/s
+    ``nullspace_speed_max``: the torque law keeps [M 20]'s ω_max, but a kinematic jump from rest to 10 rad/s
     in one tick dragged the held tool by 4 µm in the fuzz).
     """
 
@@ -220,10 +220,10 @@ class RomModulation(Strategy):
 
 class QPStrategy(Strategy):
     """qpnso: minimise the weighted mass/friction cost in the null space, with the
-    elbow kept in ROM_t (METHOD §7, level 2).
+    elbow kept in ROM_t (docs/method.md §7, level 2).
 
     Objective ``½‖q̇‖² + k ∇c(q)ᵀ q̇`` (the step ``−k∇c`` saturated to
-    ``nullspace_speed_max`` as in [M 21]); elbow rows
+    ``nullspace_speed_max`` as in [M 20]); elbow rows
     ``ξ(ns_lo − ns) ≤ ∇nsᵀ q̇ ≤ ξ(ns_hi − ns)`` (velocity dampers, soft with a
     heavy slack) so an elbow outside ROM_t is brought back at rate ξ.
     The torque is the null-space impedance ``K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)``.

@@ -1,6 +1,6 @@
 """The papers' studies, reproduced: workspace, trade-off, uncertainty, scenarios.
 
-Mass/friction paper, section IV (METHOD §3, §9):
+Mass/friction paper, section IV (docs/method.md §3, §9):
 
 * ``workspace`` (IV-A, Fig. 2): random non-singular LWR4+ configurations; with
   the tool pose held, the arm is moved along its self-motion from the start
@@ -149,7 +149,7 @@ def _coerce(key: str, value: Any, default: Any) -> Any:
 
 # --------------------------------------------------------- measures along q
 def curve_function(cost: CostModel) -> ca.Function:
-    """``q → (c_m, Λv⁻¹, G)``: mass measure [M 8], Λv⁻¹ [M 1] (1/kg) and the friction Gram matrix.
+    """``q → (c_m, Λv⁻¹, G)``: mass measure [M 8], Λv⁻¹ [M 2] (1/kg) and the friction Gram matrix.
 
     ``c_f = τmaxᵀ G τmax`` [M 13], [M 15] with ``G = Σ_i M_iᵀ M_i``,
     ``M_i = J̄vᵀ diag(a_i)``, ``a_i = (2/π) atan(β s J̄v e_i)``: the smooth Coulomb

@@ -7,7 +7,7 @@ round-off (``tests/test_symbolic.py``):
 
 * joint and frame placements (forward kinematics);
 * the frame Jacobian, ``LOCAL_WORLD_ALIGNED`` (linear rows first, world axes,
-  at the frame origin), as in METHOD §2;
+  at the frame origin), as in docs/method.md §2;
 * the joint-space inertia matrix ``A(q) = Σ_b m_b Jc_bᵀ Jc_b + Jw_bᵀ R_b I_b R_bᵀ Jw_b
   + diag(armature)``;
 * the generalised gravity ``g(q) = ∂V/∂q``, ``V = −Σ_b m_b g₀ᵀ c_b``.

@@ -1,4 +1,4 @@
-"""The controller (METHOD §7) and the baselines (§8), end to end.
+"""The controller (docs/method.md §7) and the baselines (§8), end to end.
 
 The held-tool study of the issue: 20 random non-singular LWR4+ configurations,
 5 s at 1 kHz each, checked against independent computations: Pinocchio FK
@@ -241,7 +241,7 @@ def test_q_outside_limits_is_flagged_and_pushed_back(lwr_qp: Controller) -> None
 def test_failed_qp_falls_back_to_holding_the_tool(lwr_qp: Controller, monkeypatch) -> None:
     q0 = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2])
     lwr_qp.reset(q0)
-    def failing(levels, lb, ub, check=True):
+    def failing(levels, lb, ub, check=True, time_budget=None):
         return HQPResult(None, False, "level 1 of 2 infeasible: test", 0,
                          [LevelResult(LevelStatus.INFEASIBLE)], 0.0)
     monkeypatch.setattr(lwr_qp.qp, "solve", failing)

@@ -1,4 +1,4 @@
-"""Costs of METHOD §3 against an independent NumPy/Pinocchio computation and
+"""Costs of docs/method.md §3 against an independent NumPy/Pinocchio computation and
 finite differences."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from qpnso.codegen import FastFunction
 
 
 def reference_terms(robot: qpnso.Robot, q: np.ndarray, s: float, s_w: float) -> dict[str, float]:
-    """METHOD §2–3 written directly with Pinocchio's A(q), J(q) and NumPy."""
+    """docs/method.md §2–3 written directly with Pinocchio's A(q), J(q) and NumPy."""
     a, jac = robot.mass_matrix(q), robot.jacobian(q)
     out = {}
     for key, rows, speed in (("v", slice(0, 3), s), ("w", slice(3, 6), s_w)):

@@ -443,8 +443,9 @@ def bench_fuzz(args: argparse.Namespace) -> int:
 
     offset = parse_vector(args.tool_offset, 3, "--tool-offset") if args.tool_offset else (0.0, 0.0, 0.1)
     strategies = tuple(x.strip() for x in args.strategies.split(",") if x.strip()) if args.strategies else STRATEGIES
+    budget = None if args.solver_time_budget_ms is None else args.solver_time_budget_ms * 1e-3
     config = FuzzConfig(seed=args.seed, ticks=args.n, strategies=strategies, robot=args.robot,
-                        tool_frame=args.tool_frame, tool_offset=tuple(offset))
+                        tool_frame=args.tool_frame, tool_offset=tuple(offset), solver_time_budget=budget)
     report = run_fuzz(config, progress=progress_bar(not args.quiet, "fuzz"))
     if args.out:
         write_json(args.out, report.to_dict())
@@ -542,6 +543,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-n", type=int, default=3000, help="timed calls per row; fuzz: ticks (default 3000)")
     p.add_argument("--strategies", default=None, help="comma-separated strategies for 'tick', 'fuzz' (default all)")
     p.add_argument("--seed", type=int, default=0, help="fuzz: random seed (default 0)")
+    p.add_argument("--solver-time-budget-ms", type=float, default=None,
+                   help="fuzz: every controller's solver_time_budget, in ms of CPU time (default: none)")
     p.add_argument("--quick", action="store_true", help="solvers: the small committed problem set (< 1 min)")
     p.add_argument("--out", default=None, help="solvers: folder for report.md, results.csv, figure "
                    "(default solver-bench); fuzz: the report as JSON")

@@ -1,4 +1,4 @@
-"""The per-tick controller: what a user puts in a 1 kHz control loop (METHOD §7).
+"""The per-tick controller: what a user puts in a 1 kHz control loop (docs/method.md §7).
 
 ``Controller(robot, ControllerConfig(...))``, ``reset(q0)``, then every tick
 ``step(q, dq, tool_twist) -> Command``.  Each tick:
@@ -52,7 +52,7 @@ from qpnso.settings import from_dict as settings_from_dict
 from qpnso.state import StateEvaluator, TickState
 from qpnso.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
                          FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED,
-                         FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, FLAG_TORQUE_SATURATED, LINE_OK, NS,
+                         FLAG_QP_DEADLINE, FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, FLAG_TORQUE_SATURATED, LINE_OK, NS,
                          P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, TICK_Q_REFUSED,
                          TICK_STATE_NOT_FINITE, LineTickBuffers, answer_bits, arm_angle_singular, elbow_advance,
                          elbow_bounds, elbow_memory, elbow_parameters, finish_command, interval_failed,
@@ -111,6 +111,7 @@ class Status(enum.Flag):
     QP_FALLBACK = FLAG_QP_FALLBACK  # ProxQP did not solve within its iteration budget: DAQP answered
     ELBOW_OUTSIDE_ROM = FLAG_ELBOW_OUTSIDE_ROM  # the arm angle is outside ROM_t this tick
     INTERNAL_ERROR = FLAG_INTERNAL_ERROR  # a tick could not be computed: joints stopped, τ = g(q)
+    QP_DEADLINE = FLAG_QP_DEADLINE  # the cascade's time budget was spent: lower levels skipped (with QP_FAILED)
 
 
 @dataclass
@@ -136,7 +137,7 @@ class ControllerConfig:
     pose_correction_speed: float = 0.1  # m/s: the largest speed at which the tool point returns to its reference
     pose_correction_angular_speed: float = 1.0  # rad/s: the same for the tool's orientation
     cost_gain: float = 10.0  # rad²/s per unit cost: level-2 step -gain·∇c
-    nullspace_speed_max: float = 1.0  # rad/s, saturation of the cost step (as [M 21]) and of the baselines' posture steps
+    nullspace_speed_max: float = 1.0  # rad/s, saturation of the cost step (as [M 20]) and of the baselines' posture steps
     cost_filter_time: float = 0.1  # s, low-pass of the cost step (0: none): no velocity steps
     posture_filter_time: float = 0.1  # s, the same low-pass of the baselines' kinematic posture steps (0: none)
     elbow_gain: float = 5.0  # 1/s, velocity damper of the elbow bounds
@@ -148,7 +149,7 @@ class ControllerConfig:
     fixed_posture: tuple[float, ...] | None = None  # rad; None: the reset posture
     gradient_kp: float = 50.0  # [M 20]
     gradient_kd: float = 10.0  # [M 20], [M 22]
-    gradient_omega_max: float = 10.0  # rad/s [M 21]
+    gradient_omega_max: float = 10.0  # rad/s [M 20]
     elbow_up_angle_deg: float = 0.0  # arm angle the elbow-up strategy holds
     interval_period: int = 10  # ticks between interval updates while the tool moves
     q_limit_tolerance_deg: float = 2.0  # deg (>= 0): how far outside its limits a measured joint
@@ -158,6 +159,9 @@ class ControllerConfig:
     # (a hand can push a torque-controlled arm past its rated speed; deg/s for rad/s is 57×)
     qp_backend: str = "proxsuite"
     qp_settings: QPSettings = field(default_factory=QPSettings)
+    solver_time_budget: float | None = None  # s of the control thread's CPU time for the general cascade: a
+    # lower level that would overrun it does not start (Status.QP_DEADLINE, tool held); None: no budget, answers
+    # independent of timing (HierarchicalQP.solve's time_budget; README "Real-time use" gives the measurement)
     compile: str | None = None  # CasADi evaluation: background|sync|off (codegen.py)
     compiled_tick: bool = True  # qp strategy: the tick as one Numba kernel when the line fast path applies (tick.py)
 
@@ -186,6 +190,8 @@ class ControllerConfig:
             raise out_of_range(self, "interval_period", "must be >= 1 tick")
         if self.dq_tolerance_factor < 1:
             raise out_of_range(self, "dq_tolerance_factor", "must be >= 1")
+        if self.solver_time_budget is not None and not self.solver_time_budget > 0:
+            raise out_of_range(self, "solver_time_budget", "must be > 0 s or None")
 
     @classmethod
     def from_dict(cls, values: dict, where: str = "") -> "ControllerConfig":
@@ -250,7 +256,7 @@ class ElbowState:
 
 
 class Controller:
-    """Hierarchical-QP null-space controller of a 7-DOF arm (METHOD §7)."""
+    """Hierarchical-QP null-space controller of a 7-DOF arm (docs/method.md §7)."""
 
     def __init__(self, robot: Robot, config: ControllerConfig | None = None) -> None:
         from qpnso.strategies import make_strategy
@@ -443,7 +449,8 @@ class Controller:
         level1 = Level(A=state.jacobian, b=level1_target(twist, error, self._gains, state.tool_drift))
         level2 = self.strategy.level2(state, elbow)
         levels = [level1] if level2 is None else [level1, level2]
-        result = self.qp.solve(levels, lb, ub, check=False)  # arrays built here; the answer is still checked
+        result = self.qp.solve(levels, lb, ub, check=False, time_budget=self.config.solver_time_budget)  # arrays
+        # built here; the answer is still checked
         dq_cmd, qp_status, message = self._command_velocity(result)
         tau = self._torque(state, dq_cmd, dq_meas, elbow)
         cmd = Command(
@@ -581,7 +588,8 @@ class Controller:
         """The QP's answer, or the safe fallback: level-1 solution, else zero."""
         if result.ok:
             return result.x, _answer_status(result.levels[0].residual, result.levels[-1].slack), ""
-        return self._fallback(result.status, result.x)
+        dq, status, message = self._fallback(result.status, result.x)
+        return dq, status | Status.QP_DEADLINE if result.out_of_time else status, message
 
     def _fallback(self, why: str, x: np.ndarray | None) -> tuple[np.ndarray, Status, str]:
         """The safe command after a failed QP (``why`` as :attr:`HQPResult.status` words it): the
@@ -592,8 +600,8 @@ class Controller:
         return x, Status.QP_FAILED, f"QP failed ({why}): tool held, no null-space motion"
 
     def _torque(self, state: TickState, dq_cmd: np.ndarray, dq_meas: np.ndarray, elbow: ElbowState) -> np.ndarray:
-        """τ = g(q) + Nᵀ τ_null with N = I − J̄J, J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ (METHOD §2, §7;
-        :func:`qpnso.linalg.dynamically_consistent_projection`; a singular A gives no projection, never NaN)."""
+        """τ = g(q) + Nᵀ τ_null with N = I − J̄J, J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ (docs/method.md §2, §7;
+        :func:`qpnso.linalg.dynamically_consistent_projection`; a singular A gives no null-space torque, never NaN)."""
         tau_null = self.strategy.nullspace_torque(state, elbow, dq_cmd, dq_meas)
         return state.gravity + dynamically_consistent_projection(state.mass_matrix, state.jacobian, tau_null)[0]
 

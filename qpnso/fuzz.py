@@ -159,6 +159,7 @@ class FuzzConfig:
     episode_seconds: float = 120.0  # wall time after which an episode is cut short (seconds-long ticks)
     max_seconds: float | None = None  # wall time after which the run stops (then a failure: ticks short)
     freeze_gc: bool = True  # build every controller first, then gc.collect(); gc.freeze() for the run
+    solver_time_budget: float | None = None  # s: every controller's ControllerConfig.solver_time_budget
     # thresholds of the checks
     joint_tol: float = 1e-9  # rad, rad/s
     torque_tol: float = 1e-9  # N·m
@@ -257,6 +258,7 @@ class FuzzReport:
     recovery_unreachable: int = 0  # over the limit but the reference was not reachable (not counted)
     recovery_elbow_undefined: int = 0  # over the limit, elbow dropped, the arm angle undefined at the held pose
     drift_checked: int = 0  # held ticks checked for drift (settled, not excused)
+    deadline_ticks: int = 0  # valid ticks whose cascade ran out of solver_time_budget (Status.QP_DEADLINE)
     episodes_cut: int = 0  # episodes cut short after episode_seconds
     completed: bool | None = None  # after a run: whether it ran every tick asked for
     exceptions: list[dict] = field(default_factory=list)  # the first foreign exceptions with tracebacks
@@ -355,6 +357,7 @@ class FuzzReport:
         lines.append(f"bad inputs: {self.probes} sent, {refused} refused, {accepted} accepted")
         per = ", ".join(f"{s} {v.get('ticks', 0)}" for s, v in sorted(self.by_strategy.items()))
         lines.append(f"ticks per strategy: {per}; held ticks checked for drift {self.drift_checked}; "
+                     f"ticks out of solver_time_budget ({cfg.solver_time_budget}) {self.deadline_ticks}; "
                      f"episodes cut short (over {cfg.episode_seconds:g} s) {self.episodes_cut}; "
                      f"wall {self.wall_seconds:.1f} s")
         return "\n".join(lines)
@@ -371,6 +374,7 @@ class FuzzReport:
             "percentiles": self.percentiles(), "recovery_censored": self.recovery_censored,
             "recovery_unreachable": self.recovery_unreachable,
             "recovery_elbow_undefined": self.recovery_elbow_undefined, "drift_checked": self.drift_checked,
+            "deadline_ticks": self.deadline_ticks,
             "episodes_cut": self.episodes_cut, "completed": self.completed, "exceptions": self.exceptions,
             "build_seconds": self.build_seconds, "wall_seconds": self.wall_seconds,
         })  # type: ignore[return-value]
@@ -1048,6 +1052,8 @@ class Episode:
         cmd = self._step(twist, dq_in, inputs)
         cpu = time.thread_time() - cpu
         self.report.count_tick(self.strategy)
+        if cmd is not None and cmd.status & Status.QP_DEADLINE:
+            self.report.deadline_ticks += 1
         finite = cmd is not None and chk.command(cmd, self.q, where, inputs, cpu_time=cpu,
                                                  solver_cpu_time=self.clock.take(cpu))
         self.failures_in_row = 0 if finite else self.failures_in_row + 1
@@ -1091,7 +1097,8 @@ class Fuzzer:
         ctrl = self._controllers.get(strategy)
         if ctrl is None:
             t0 = time.perf_counter()
-            ctrl = Controller(self.robot, ControllerConfig(strategy=strategy, compile=self.config.compile))
+            ctrl = Controller(self.robot, ControllerConfig(strategy=strategy, compile=self.config.compile,
+                                                           solver_time_budget=self.config.solver_time_budget))
             ctrl.cost.wait_compiled()
             ctrl.evaluate.wait_compiled()
             self.report.build_seconds[strategy] = time.perf_counter() - t0

@@ -1,4 +1,4 @@
-"""Hierarchical (lexicographic) QP over joint velocities, solved every tick (METHOD §7).
+"""Hierarchical (lexicographic) QP over joint velocities, solved every tick (docs/method.md §7).
 
 A cascade of levels over ``x`` ∈ Rⁿ (joint velocities, rad/s).  Level ``k``
 minimises its objective over the optimal set of levels ``0 … k−1``; the hard
@@ -12,7 +12,7 @@ bounds ``lb ≤ x ≤ ub`` hold on every level.  One level may combine
   (``l ≤ C x + s ≤ u``, cost ``slack_weight · ‖s‖²``) so that an unreachable
   elbow constraint never makes the QP infeasible.
 
-**Null-space form** (not the fragile equality form of QP-NOTES): level ``k``
+**Null-space form** (not the fragile equality form, docs/qp-notes.md): level ``k``
 moves the answer of the levels above only inside the directions that no higher
 level owns, through an orthonormal basis ``Z_k`` (n×r) of them:
 ``x = x_{k−1} + Z_k z``.  The answer is always formed through ``Z_k``, so a
@@ -77,7 +77,7 @@ within ``active_tol`` (1e-7) of that solution is moved onto it: an inexact
 (interior) answer otherwise leaves the lower level a sliver of a feasible set
 that ProxQP's infeasibility test can mistake for an empty one (measured).
 
-**Singular tasks** ([M 20]-style damped least squares, singular-value
+**Singular tasks** (damped least squares, singular-value
 dependent): along a right singular direction with
 ``rank_tol < σ < ε`` (``ε = QPSettings.damping_threshold``, units of ``A``,
 e.g. m/rad) the cost gets ``(ε² − σ²)·(vᵀd)²``, so the effective curvature is
@@ -128,7 +128,7 @@ class QPSettings:
 
     ``eps_abs``/``eps_rel``/``eps_primal_inf``/``eps_dual_inf``/``max_iter``
     are ProxQP's (the defaults 1e-5/0/1e-4 are too loose for 1 ms velocity
-    steps: a warm start can stop after zero iterations, see QP-NOTES).
+    steps: a warm start can stop after zero iterations, see docs/qp-notes.md).
     ``solver_options`` are passed verbatim to ``qpsolvers.solve_problem``.
     """
 
@@ -846,6 +846,7 @@ class LevelStatus(str, enum.Enum):
     INACCURATE = "inaccurate"  # solver said solved, but the answer failed verification
     SOLVER_ERROR = "solver_error"
     SKIPPED = "skipped"  # a higher level failed
+    TIME_BUDGET = "time_budget"  # the cascade's time budget was spent before this level (not solved)
 
     def __str__(self) -> str:
         return self.value
@@ -888,6 +889,11 @@ class HQPResult:
     def solve_time(self) -> float:
         """Alias of ``solve_time_s`` (s)."""
         return self.solve_time_s
+
+    @property
+    def out_of_time(self) -> bool:
+        """The cascade stopped because its time budget was spent (:attr:`LevelStatus.TIME_BUDGET`)."""
+        return self.failed_level is not None and self.levels[self.failed_level].status is LevelStatus.TIME_BUDGET
 
 
 @dataclass
@@ -946,7 +952,7 @@ def active_set_solve(H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray
     semi-definite ``H`` handled by proximal-point iterations (``eps_prox=1e-6``, to ``eta_prox=1e-12``:
     its automatic choice stalled for 5000 iterations along a flat direction that a bound cut, and its
     default 1e-6 tolerance left level 1's residual at 7e-8, both measured).  The recovery of
-    :class:`_ProxSuiteBackend` when ProxQP fails (QP-NOTES: ProxQP can stall on degenerate problems)."""
+    :class:`_ProxSuiteBackend` when ProxQP fails (docs/qp-notes.md: ProxQP can stall on degenerate problems)."""
     if box_l is not None:
         upper, lower = np.concatenate([box_u, hi]), np.concatenate([box_l, lo])
     else:
@@ -1134,7 +1140,7 @@ def _make_backend(backend: str, settings: QPSettings, stats: HQPStats):
 
 # ------------------------------------------------------------------- solver
 class HierarchicalQP:
-    """Lexicographic cascade of :class:`Level` over ``n`` joint velocities (METHOD §7).
+    """Lexicographic cascade of :class:`Level` over ``n`` joint velocities (docs/method.md §7).
 
     ``backend="proxsuite"``: native dense ProxQP, one object per level and QP
     shape (the shape changes with the number of free directions, e.g. at a
@@ -1159,7 +1165,7 @@ class HierarchicalQP:
         self._backend = _make_backend(backend, self.settings, self.stats)
 
     def solve(self, levels: Sequence[Level], lb: np.ndarray | None = None,
-              ub: np.ndarray | None = None, check: bool = True) -> HQPResult:
+              ub: np.ndarray | None = None, check: bool = True, time_budget: float | None = None) -> HQPResult:
         """Solve the cascade under the hard bounds ``lb ≤ x ≤ ub`` (rad/s, ∓inf allowed).
 
         Raises :class:`InputError` on bad input (before solving anything);
@@ -1167,11 +1173,21 @@ class HierarchicalQP:
         ``check=False`` skips the input validation (shapes, NaN, intervals) for a
         caller that builds float arrays of the right shapes itself; the answer is
         verified (finite, bounds, hard rows) either way.
+
+        ``time_budget`` (s of this thread's CPU time, ``time.thread_time``; None: none): the general
+        cascade starts a level only if the time spent so far plus the last level's own time fits in
+        it — the first level always starts.  The levels solved stand (the least-norm point of their
+        optimal set, as always), the next one is reported :attr:`LevelStatus.TIME_BUDGET` and the rest
+        skipped: a deadline for a control tick, at the price of answers that depend on the CPU time a
+        level took.  Each QP's own budget is
+        in iterations (:class:`QPSettings`); the line fast path's two levels are not cut.
         """
         t0 = time.perf_counter()
         if not isinstance(levels, (list, tuple)) and (isinstance(levels, Level) or not isinstance(levels, Sequence)) \
                 or len(levels) == 0:
             raise InputError("levels must be a non-empty sequence of Level")
+        if time_budget is not None and not (isinstance(time_budget, (int, float)) and time_budget > 0):
+            raise InputError(f"time_budget must be a positive number of seconds or None, got {time_budget!r}")
         if check:
             data = [_validate_level(level, self.n, f"levels[{k}]") for k, level in enumerate(levels)]
             lo, hi = _validate_bounds(lb, ub, self.n)
@@ -1181,17 +1197,25 @@ class HierarchicalQP:
             hi = np.full(self.n, np.inf) if ub is None else np.asarray(ub, dtype=float)
         line = _task_line(data[0], lo, hi, self.settings) \
             if self.settings.line_fast_path and len(data) <= 2 else None
-        results = self._solve_cascade(data, lo, hi) if line is None else self._solve_on_line(data, line)
+        results = self._solve_cascade(data, lo, hi, time_budget) if line is None else self._solve_on_line(data, line)
         return self._finish(results, len(data), t0)
 
-    def _solve_cascade(self, data: list[_LevelData], lo: np.ndarray, hi: np.ndarray) -> list[LevelResult]:
-        """Level after level in the null-space basis; stops at the first failed level.  The last solved
-        level's answer is then made unique: the least-norm point of its optimal set (:meth:`_least_norm`),
-        never whatever a solver's warm start left along the directions no level owns."""
+    def _solve_cascade(self, data: list[_LevelData], lo: np.ndarray, hi: np.ndarray,
+                       time_budget: float | None = None) -> list[LevelResult]:
+        """Level after level in the null-space basis; stops at the first failed level, or before a level
+        that would overrun ``time_budget`` (s of CPU time, :meth:`solve`).  The last solved level's answer is
+        then made unique: the least-norm point of its optimal set (:meth:`_least_norm`), never whatever a
+        solver's warm start left along the directions no level owns."""
         cascade = Cascade.start(lo, hi)
         results: list[LevelResult] = []
         solved = None  # the cascade after the last solved level
+        start = level_start = time.thread_time() if time_budget is not None else 0.0
         for k, level in enumerate(data):
+            if k and time_budget is not None and _out_of_time(start, level_start, time_budget):
+                results.append(LevelResult(LevelStatus.TIME_BUDGET, message=f"the cascade's time budget of "
+                                           f"{time_budget * 1e3:.3g} ms would be spent by this level"))
+                break
+            level_start = time.thread_time() if time_budget is not None else 0.0
             qp = build_level_qp(level, cascade, self.settings)
             result = self._solve_level(k, level, qp)
             results.append(result)
@@ -1344,6 +1368,13 @@ class HierarchicalQP:
                                message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
         return LevelResult(LevelStatus.SOLVED, x=x, residual=_residual(level, x), slack=slack if qp.n_slack else None,
                            iterations=raw.iterations, message=raw.message)
+
+
+def _out_of_time(start: float, level_start: float, budget: float) -> bool:
+    """Whether the next level would overrun ``budget`` (s of CPU time since ``start``), judged by the
+    last level's own time (since ``level_start``): the levels of one cascade cost about the same."""
+    now = time.thread_time()
+    return now - start + (now - level_start) > budget
 
 
 def solved_vector(raw: _Raw, shape: tuple[int, ...]) -> np.ndarray | None:

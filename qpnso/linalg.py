@@ -14,7 +14,7 @@ against NumPy/SciPy (tests/test_linalg.py).
   matrices given by their upper triangle (Pinocchio's ``crba`` fills only that);
 * :func:`nullspace_part` — ``v − J⁺Jv``, the part of ``v`` in ``ker J``;
 * :func:`dynamically_consistent_projection` — ``Nᵀτ`` with
-  ``N = I − J̄J``, ``J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹`` (METHOD §2).
+  ``N = I − J̄J``, ``J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹`` (docs/method.md §2).
 """
 
 from __future__ import annotations
@@ -174,16 +174,17 @@ def nullspace_part(J, v):  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def dynamically_consistent_projection(A, J, tau):  # type: ignore[no-untyped-def]
-    """``(Nᵀτ, ok)``: ``Nᵀτ = τ − Jᵀ Λ J A⁻¹ τ`` with ``Λ = (J A⁻¹ Jᵀ)⁻¹`` (METHOD §2); ``A`` by its
-    upper triangle.  Not positive definite (``ok`` False): ``τ`` itself, never NaN."""
+    """``(Nᵀτ, ok)``: ``Nᵀτ = τ − Jᵀ Λ J A⁻¹ τ`` with ``Λ = (J A⁻¹ Jᵀ)⁻¹`` (docs/method.md §2); ``A`` by its
+    upper triangle.  When ``A`` or ``J A⁻¹ Jᵀ`` cannot be factorised (``ok`` False): zero, never NaN and
+    never ``τ`` unprojected (that would push the tool): the tick's torque is then ``g(q)`` alone."""
     LA, ok = cholesky(A, 0.0)
     if not ok:
-        return tau.copy(), False
+        return np.zeros_like(tau), False
     m, n = J.shape
     W = np.empty((n, m))  # A⁻¹ Jᵀ
     for k in range(m):
         W[:, k] = cholesky_solve(LA, J[k].copy())
     LL, ok = cholesky(matmul(J, W), REGULARIZATION)
     if not ok:
-        return tau.copy(), False
+        return np.zeros_like(tau), False
     return tau - matvec(J.T, cholesky_solve(LL, matvec(W.T, tau))), True

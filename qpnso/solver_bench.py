@@ -1,4 +1,4 @@
-"""QP solver comparison on the controller's own QPs (METHOD §7; methodology of qpbenchmark).
+"""QP solver comparison on the controller's own QPs (docs/method.md §7; methodology of qpbenchmark).
 
 Three parts:
 
@@ -116,7 +116,7 @@ class BenchProblem:
 
 def level_problems(n: int, levels: Sequence[Level], lb: np.ndarray | None, ub: np.ndarray | None, result,
                    settings: QPSettings, sequence: str = "", tick: int = 0) -> list[BenchProblem]:
-    """The QP of each level (``n`` joint velocities) the controller's solver was asked (METHOD §7).
+    """The QP of each level (``n`` joint velocities) the controller's solver was asked (docs/method.md §7).
 
     Rebuilds the cascade with :func:`build_level_qp` / :func:`advance_cascade`,
     advanced with the controller's own answer ``result.levels[k].x`` (an
@@ -170,8 +170,8 @@ class QPRecorder:
     def __enter__(self) -> "QPRecorder":
         original = self.ctrl.qp.solve
 
-        def solve(levels, lb=None, ub=None, check=True):
-            result = original(levels, lb, ub, check)
+        def solve(levels, lb=None, ub=None, check=True, time_budget=None):
+            result = original(levels, lb, ub, check, time_budget)
             if self.keep(self.ticks):
                 self.problems += level_problems(self.ctrl.qp.n, levels, lb, ub, result, self.settings,
                                                 f"{self.source}/c{self.chunk(self.ticks)}", self.ticks)

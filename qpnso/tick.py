@@ -1,4 +1,4 @@
-"""The control tick's arithmetic, compiled with Numba (METHOD §7).
+"""The control tick's arithmetic, compiled with Numba (docs/method.md §7).
 
 Every per-tick formula of :mod:`qpnso.controller` and of the ``qp`` strategy
 (:mod:`qpnso.strategies`) between the CasADi state and the QP is a small
@@ -63,6 +63,7 @@ FLAG_QP_FAILED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_ROM_EMPTY = 1, 2, 4, 
 FLAG_Q_OUT_OF_LIMITS, FLAG_INTERVAL_STALE, FLAG_TOOL_LIMITED = 16, 32, 64
 FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = COST_UNDEFINED_BIT, 256, 512, 1024
 FLAG_INTERNAL_ERROR = INTERNAL_ERROR_BIT
+FLAG_QP_DEADLINE = 4096
 
 TOOL_RESIDUAL_REPORTED = 1e-6
 """m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
@@ -170,7 +171,7 @@ def velocity_bounds(q, q_min, q_max, dq_max, gain, recovery):  # type: ignore[no
 @njit(cache=True)
 def cost_step(J, cost_gradient, gain, speed_max):  # type: ignore[no-untyped-def]
     """The ``qp`` strategy's step ``k∇c`` (rad/s), scaled so that its part in ``ker J`` (what the
-    null space can do) is at most ``speed_max`` rad/s (the saturation of [M 21])."""
+    null space can do) is at most ``speed_max`` rad/s (the saturation of [M 20])."""
     step = gain * cost_gradient
     free = nullspace_part(J, step)
     norm = math.sqrt(dot(free, free))
@@ -360,7 +361,7 @@ class LineTickBuffers:
 
 @njit(cache=True)
 def qp_torque(A, gravity, J, dq_cmd, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
-    """``τ = g(q) + Nᵀ τ_null`` (N·m, METHOD §2, §7) with the ``qp`` strategy's impedance
+    """``τ = g(q) + Nᵀ τ_null`` (N·m, docs/method.md §2, §7) with the ``qp`` strategy's impedance
     :func:`qp_nullspace_torque`; ``A`` read by its upper triangle."""
     tau_null = qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping)
     return gravity + dynamically_consistent_projection(A, J, tau_null)[0]

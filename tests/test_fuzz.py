@@ -174,6 +174,21 @@ def test_cli_bench_fuzz_writes_the_report_and_sets_the_exit_status(tmp_path, cap
     assert main(["bench", "fuzz", "-n", "10", "--strategies", "nope"]) == 2
 
 
+def test_cli_bench_fuzz_passes_the_solver_time_budget_and_counts_its_ticks(tmp_path) -> None:
+    """``--solver-time-budget-ms``: every controller gets it; a budget nothing fits in cuts every general
+    cascade after level 1 (the damped strategy from singular starts runs many), and the report counts them."""
+    from qpnso.cli import main
+
+    out = tmp_path / "fuzz.json"
+    main(["bench", "fuzz", "-n", "600", "--seed", "5", "--strategies", "fixed", "--solver-time-budget-ms", "1e-9",
+          "--out", str(out), "--quiet"])
+    data = json.loads(out.read_text())
+    assert data["config"]["solver_time_budget"] == pytest.approx(1e-12)
+    assert data["deadline_ticks"] > 0
+    main(["bench", "fuzz", "-n", "600", "--seed", "5", "--strategies", "fixed", "--out", str(out), "--quiet"])
+    assert json.loads(out.read_text())["deadline_ticks"] == 0
+
+
 def test_seeded_closed_loop_fuzz_holds_every_line() -> None:
     """About 20 s here: 18 000 ticks, 3000 per strategy, from every kind of start, with twists, pulls, overshoots
     and bad inputs (a run that stops at ``max_seconds`` fails).  Reproduce a failing episode alone with

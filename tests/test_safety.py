@@ -269,6 +269,57 @@ def test_general_cascade_answer_does_not_depend_on_the_warm_start(robot) -> None
     np.testing.assert_allclose(first, np.linalg.pinv(J) @ b, atol=1e-9)
 
 
+def test_a_spent_time_budget_stops_the_cascade_before_level_2_and_holds_the_tool(robot) -> None:
+    """``time_budget`` (item 9's deadline): once spent, no lower level starts; level 1's answer stands as
+    the least-norm point of its optimal set (the pseudo-inverse, computed apart), the level reported
+    ``TIME_BUDGET``; an ample budget changes nothing."""
+    J = pin.computeFrameJacobian(robot.model, robot.model.createData(), Q1, robot.tool_frame_id,
+                                 pin.LOCAL_WORLD_ALIGNED)
+    b = np.array([0.01, 0, 0, 0, 0, 0])
+    lb, ub = -robot.dq_max, robot.dq_max
+    levels = [Level(A=J, b=b), Level(g=np.ones(7)), Level(g=-np.ones(7))]
+    qp = HierarchicalQP(7, settings=QPSettings(line_fast_path=False))
+    free = qp.solve(levels, lb, ub)
+    assert free.ok and not free.out_of_time
+    cut = qp.solve(levels, lb, ub, time_budget=1e-12)
+    assert not cut.ok and cut.out_of_time and cut.failed_level == 1
+    assert [level.status for level in cut.levels] == [LevelStatus.SOLVED, LevelStatus.TIME_BUDGET,
+                                                      LevelStatus.SKIPPED]
+    assert "time budget" in cut.status
+    np.testing.assert_allclose(cut.x, np.linalg.pinv(J) @ b, atol=1e-9)
+    assert np.linalg.norm(free.x - cut.x) > 1e-3  # level 2 did move the answer when it ran
+    ample = qp.solve(levels, lb, ub, time_budget=10.0)
+    np.testing.assert_allclose(ample.x, free.x, atol=1e-12)
+    for bad in (0.0, -1.0, "1ms", np.nan):
+        with pytest.raises(qpnso.InputError, match="time_budget"):
+            qp.solve(levels, lb, ub, time_budget=bad)
+
+
+def test_a_controller_out_of_time_holds_the_tool_and_says_so(robot) -> None:
+    """``solver_time_budget``: a tick whose cascade runs out of it is flagged ``QP_DEADLINE`` (and
+    ``QP_FAILED``: the cost level did not run), and its command is level 1's least-norm answer: the tool
+    moves as in the full tick (J·dq equal, by Pinocchio's Jacobian: level 1's target is the same) with no
+    null-space motion (dq = J⁺J·dq_full)."""
+    cfg = dict(compiled_tick=False, qp_settings=QPSettings(line_fast_path=False))
+    slow = Controller(robot, ControllerConfig(solver_time_budget=1e-12, **cfg))
+    free = Controller(robot, ControllerConfig(**cfg))
+    twist = np.array([0.01, 0, 0, 0, 0, 0])
+    slow.reset(Q1), free.reset(Q1)
+    cut, full = slow.step(Q1, tool_twist=twist), free.step(Q1, tool_twist=twist)
+    assert cut.status & Status.QP_DEADLINE and cut.status & Status.QP_FAILED and not cut.ok
+    assert not full.status & Status.QP_DEADLINE and full.ok
+    assert "time budget" in cut.message
+    J = pin.computeFrameJacobian(robot.model, robot.model.createData(), Q1, robot.tool_frame_id,
+                                 pin.LOCAL_WORLD_ALIGNED)
+    np.testing.assert_allclose(J @ cut.dq, J @ full.dq, atol=1e-9)
+    np.testing.assert_allclose(J @ cut.dq, twist, atol=1e-6)  # the twist, up to the second-order term
+    np.testing.assert_allclose(cut.dq, np.linalg.pinv(J) @ (J @ full.dq), atol=1e-9)
+    assert np.linalg.norm(full.dq - cut.dq) > 1e-4  # the full tick did move the null space
+    for bad in (0.0, -1e-3, "fast"):
+        with pytest.raises(qpnso.ConfigError, match="solver_time_budget"):
+            ControllerConfig(solver_time_budget=bad)
+
+
 def test_pose_correction_is_capped_only_for_large_errors() -> None:
     from qpnso.tick import pose_correction
 

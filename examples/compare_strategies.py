@@ -6,8 +6,8 @@ Run: python examples/compare_strategies.py
 
 from pathlib import Path
 
-from qpnso.plots import plot_comparison
-from qpnso.scenarios import simulate_scenario
+from qpnso.lab.plots import plot_comparison
+from qpnso.lab.scenarios import simulate_scenario
 
 runs = {s: simulate_scenario("B", s, duration_scale=3 / 36) for s in ("qp", "damped", "fixed")}
 for name, run in runs.items():

@@ -6,7 +6,7 @@ Run: python examples/compare_versions.py OTHER_CHECKOUT [-n 3000] [--strategies 
 OTHER_CHECKOUT is a folder holding another version's `qpnso/` and `models/` (for instance
 `git worktree add /tmp/qpnso_old 0516678`). Its package is copied to a temporary folder as
 `qpnso_other` (imports rewritten) so that both versions run in this process, the rows taken
-in turns of 250 ticks (`qpnso.benchmark.interleaved`): on a shared VM whose speed drifts by
+in turns of 250 ticks (`qpnso.lab.benchmark.interleaved`): on a shared VM whose speed drifts by
 2x over seconds, only rows timed side by side can be compared (separate runs of the same
 code differed by 30 %, measured). Prints each strategy's median and p99 for both versions
 and their ratio; the tool is held from the robot's sample configuration.
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 import qpnso
-from qpnso.benchmark import held_tool_ticks, interleaved, pink_ticks
+from qpnso.lab.benchmark import held_tool_ticks, interleaved, pink_ticks
 
 _IMPORTS = (
     (re.compile(r"\bfrom qpnso\b"), "from qpnso_other"),
@@ -62,8 +62,8 @@ def main() -> None:
     strategies = (args.strategies or ("qp" if smoke else ",".join(qpnso.STRATEGIES))).split(",")
     n = args.n or (300 if smoke else 3000)
     runs = {}
-    assert rewrite_imports("from qpnso.hqp import x; import qpnso; qpnso.tick") == \
-        "from qpnso_other.hqp import x; import qpnso_other; qpnso_other.tick"
+    assert rewrite_imports("from qpnso.qp.hqp import x; import qpnso; qpnso.control.tick") == \
+        "from qpnso_other.qp.hqp import x; import qpnso_other; qpnso_other.control.tick"
     for lib, tag in ((qpnso, "this"), (qpnso if smoke else load_other(args.other), "other")):
         robot = lib.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.1])
         q0 = robot.sample_configuration()

@@ -13,9 +13,9 @@ from qpnso import compiled_cache as _compiled_cache  # noqa: E402
 
 _compiled_cache.begin_keyed_numba_cache(__version__)
 
-from qpnso.controller import STRATEGIES, Command, Controller, ControllerConfig, Status
-from qpnso.costs import TERMS, CostModel, CostWeights, DirectionalCost
-from qpnso.elbow import (
+from qpnso.control.controller import STRATEGIES, Command, Controller, ControllerConfig, Status
+from qpnso.model.costs import TERMS, CostModel, CostWeights, DirectionalCost
+from qpnso.elbow.arm_angle import (
     ArmAngle,
     Branch,
     ElbowPoints,
@@ -41,11 +41,11 @@ from qpnso.errors import (
     TrajectoryError,
     UnreachableError,
 )
-from qpnso.hqp import HierarchicalQP, Level, QPSettings
-from qpnso.intervals import Interval, continuity_interval, feasible_intervals
-from qpnso.robot import JointFriction, Robot, load_robot
-from qpnso.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
-from qpnso.symbolic import SymbolicModel
+from qpnso.qp.hqp import HierarchicalQP, Level, QPSettings
+from qpnso.elbow.intervals import Interval, continuity_interval, feasible_intervals
+from qpnso.model.robot import JointFriction, Robot, load_robot
+from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
+from qpnso.model.symbolic import SymbolicModel
 
 _compiled_cache.end_keyed_numba_cache()  # last: other code's Numba kernels keep the user's setting
 

@@ -61,7 +61,7 @@ def add_q_arguments(p: argparse.ArgumentParser) -> None:
 def load_cli_robot(args: argparse.Namespace, redundant: bool = False):
     """The robot of ``--robot``/``--tool-frame``/``--tool-offset``; with ``redundant``,
     refused unless it is a 7-DOF arm (the commands that move the elbow)."""
-    from qpnso.robot import load_robot
+    from qpnso.model.robot import load_robot
 
     offset = parse_vector(args.tool_offset, 3, "--tool-offset") if args.tool_offset else None
     robot = load_robot(args.robot, tool_frame=args.tool_frame, tool_offset=offset)
@@ -85,7 +85,7 @@ NO_MATPLOTLIB = "matplotlib is not installed (pip install 'qpnso[plot]')"
 # ---------------------------------------------------------------------- info
 def cmd_info(args: argparse.Namespace) -> int:
     """Print the model: joints, limits, masses, tool frame, costs at a sample q."""
-    from qpnso.costs import TERMS, CostModel
+    from qpnso.model.costs import TERMS, CostModel
 
     robot = load_cli_robot(args)
     q = robot_q(args, robot)
@@ -122,9 +122,9 @@ def cmd_info(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------- intervals
 def cmd_intervals(args: argparse.Namespace) -> int:
     """Plot every joint versus the arm angle for the tool pose of q (PNG)."""
-    from qpnso.intervals import continuity_interval
-    from qpnso.plots import plot_intervals
-    from qpnso.rom import ElbowConfig
+    from qpnso.elbow.intervals import continuity_interval
+    from qpnso.lab.plots import plot_intervals
+    from qpnso.elbow.rom import ElbowConfig
 
     if not have_matplotlib():
         from qpnso.errors import InputError
@@ -153,8 +153,7 @@ def cmd_trajectory(args: argparse.Namespace) -> int:
     """Generate a tool trajectory CSV (t,x,y,z,qx,qy,qz,qw)."""
     import pinocchio as pin
 
-    from qpnso import trajectory as tr
-
+    from qpnso.control import trajectory as tr
     center = parse_vector(args.center, 3, "--center")
     rot = pin.rpy.rpyToMatrix(*np.radians(parse_vector(args.rpy_deg, 3, "--rpy-deg")))
     pose = pin.SE3(rot, center)
@@ -203,7 +202,7 @@ def write_json(path: str, data: dict) -> None:
     import json
     from pathlib import Path
 
-    from qpnso.solve import atomic_write
+    from qpnso.control.offline import atomic_write
 
     text = json.dumps(data, indent=2, sort_keys=True).encode()
     atomic_write(Path(path), lambda f: f.write(text))
@@ -244,8 +243,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
     Exit status 0 when the tool stayed within the tolerance of the trajectory,
     1 when it did not (the result and summary are written all the same), 2 for
     bad input."""
-    from qpnso.solve import load_config, solve_trajectory
-    from qpnso.trajectory import read_csv
+    from qpnso.control.offline import load_config, solve_trajectory
+    from qpnso.control.trajectory import read_csv
 
     tol_m = positive(args.tool_tolerance_mm, "--tool-tolerance-mm") / 1000.0
     tol_rad = np.radians(positive(args.tool_tolerance_deg, "--tool-tolerance-deg"))
@@ -276,9 +275,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     """Hands-on guidance simulation of a scenario with one strategy."""
     from pathlib import Path
 
-    from qpnso.plots import plot_run
-    from qpnso.scenarios import load_scenario, simulate_scenario
-    from qpnso.solve import config_values
+    from qpnso.lab.plots import plot_run
+    from qpnso.lab.scenarios import load_scenario, simulate_scenario
+    from qpnso.control.offline import config_values
 
     sc = load_scenario(args.scenario)
     settings = config_values(args.config, controller_overrides(args))
@@ -307,7 +306,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from qpnso.errors import InputError
-    from qpnso.plots import plot_run
+    from qpnso.lab.plots import plot_run
 
     path = Path(args.result)
     if not path.is_file():
@@ -334,10 +333,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
     """Several strategies on one scenario: one table (Markdown) and one figure."""
     from pathlib import Path
 
-    from qpnso.controller import STRATEGIES
+    from qpnso.control.controller import STRATEGIES
     from qpnso.errors import ConfigError
-    from qpnso.plots import plot_comparison
-    from qpnso.scenarios import load_scenario, simulate_scenario
+    from qpnso.lab.plots import plot_comparison
+    from qpnso.lab.scenarios import load_scenario, simulate_scenario
 
     strategies = [x.strip() for x in args.strategies.split(",") if x.strip()]
     unknown = [x for x in strategies if x not in STRATEGIES]
@@ -385,7 +384,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     """One of the papers' studies, on every core or a Dask cluster."""
     from pathlib import Path
 
-    from qpnso.studies import run_study
+    from qpnso.lab.studies import run_study
 
     options = {}
     for item in args.option or []:
@@ -407,12 +406,11 @@ def cmd_study(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------- bench
 def cmd_bench(args: argparse.Namespace) -> int:
     """Time the cost or the control tick; print a Markdown table of medians and p99."""
-    from qpnso import benchmark
-
+    from qpnso.lab import benchmark
     if args.what == "solvers":
         from pathlib import Path
 
-        from qpnso.solver_bench import run_solver_benchmark
+        from qpnso.lab.solver_bench import run_solver_benchmark
 
         report = run_solver_benchmark(Path(args.out or "solver-bench"), quick=args.quick,
                                       progress=None if args.quiet else print)
@@ -436,10 +434,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def bench_fuzz(args: argparse.Namespace) -> int:
-    """``qpnso bench fuzz -n N``: N fuzzed closed-loop ticks (qpnso/fuzz.py); the Markdown table, the report
+    """``qpnso bench fuzz -n N``: N fuzzed closed-loop ticks (qpnso/lab/fuzz.py); the Markdown table, the report
     as JSON with ``--out``; exit status 1 if a must-hold check fails."""
-    from qpnso.controller import STRATEGIES
-    from qpnso.fuzz import FuzzConfig, run_fuzz
+    from qpnso.control.controller import STRATEGIES
+    from qpnso.lab.fuzz import FuzzConfig, run_fuzz
 
     offset = parse_vector(args.tool_offset, 3, "--tool-offset") if args.tool_offset else (0.0, 0.0, 0.1)
     strategies = tuple(x.strip() for x in args.strategies.split(",") if x.strip()) if args.strategies else STRATEGIES

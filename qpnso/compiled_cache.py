@@ -3,10 +3,10 @@
 Two kinds of compiled code are kept on disk, both under ``QPNSO_CACHE_DIR``
 (default ``~/.cache/qpnso``):
 
-* the C libraries of the CasADi functions (:mod:`qpnso.codegen`), in that folder itself, each
+* the C libraries of the CasADi functions (:mod:`qpnso.model.codegen`), in that folder itself, each
   named by the hash of its generated source, so they can never be stale;
 * the machine code of the Numba kernels (``@njit(cache=True)`` in :mod:`qpnso.linalg`,
-  :mod:`qpnso.hqp`, :mod:`qpnso.tick`, :mod:`qpnso.rom`, :mod:`qpnso.state`), in
+  :mod:`qpnso.qp.hqp`, :mod:`qpnso.control.tick`, :mod:`qpnso.elbow.rom`, :mod:`qpnso.control.state`), in
   ``numba/<key>/``.  Numba checks a cached kernel against its *own* source file only, so a kernel
   that calls a kernel of another module kept the callee's old code after that module changed.
   The key therefore hashes, with the qpnso, Numba and NumPy versions, every package file a kernel

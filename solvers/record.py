@@ -6,7 +6,7 @@
 Each source (scenarios A and B, the guidance path on the iiwa14, held tools at
 random postures of both robots) is tracked offline by the shipped controller;
 the QPs of both levels are recorded tick by tick by wrapping that controller's
-``qp.solve`` (see ``qpnso.solver_bench.record_problem_set``), and each gets a
+``qp.solve`` (see ``qpnso.lab.solver_bench.record_problem_set``), and each gets a
 high-accuracy reference solution (DAQP / quadprog / ProxQP at 1e-12, cross-checked).
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))  # the checkout's qpnso when run from a source tree
 
-from qpnso.solver_bench import load_problems, record_problem_set  # noqa: E402
+from qpnso.lab.solver_bench import load_problems, record_problem_set  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's qpnso
 
-from qpnso.solver_bench import run_solver_benchmark  # noqa: E402
+from qpnso.lab.solver_bench import run_solver_benchmark  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

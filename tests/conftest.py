@@ -11,10 +11,10 @@ import pytest
 os.environ.setdefault("QPNSO_COMPILE", "off")
 
 import qpnso  # noqa: E402
-import qpnso.robot  # noqa: E402
+import qpnso.model.robot  # noqa: E402
 
 SRS_ROBOTS = ["lwr4p", "iiwa14"]
-HAS_PANDA = qpnso.robot._panda_urdf() is not None
+HAS_PANDA = qpnso.model.robot._panda_urdf() is not None
 ALL_ROBOTS = SRS_ROBOTS + (["panda"] if HAS_PANDA else [])
 
 

@@ -225,7 +225,7 @@ def test_trajectory_error_shows_plain_numbers(tmp_path, capsys) -> None:
 
 def six_dof_urdf(tmp_path):
     """The shipped LWR4+ without joint 7 and link 7 (the flange moved onto link 6): a 6-DOF arm."""
-    from qpnso.robot import MODELS_DIR
+    from qpnso.model.robot import MODELS_DIR
 
     text = (MODELS_DIR / "lwr4p.urdf").read_text()
     text = re.sub(r'\s*<joint name="joint_7".*?</joint>', "", text, flags=re.S)

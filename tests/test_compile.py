@@ -1,5 +1,5 @@
 """Compiled code is never stale, and compiling is visible and finishes (qpnso/compiled_cache.py,
-qpnso/codegen.py).
+qpnso/model/codegen.py).
 
 Each test runs Python in a subprocess with its own empty caches (``QPNSO_CACHE_DIR`` in a tmp
 folder, no ``NUMBA_CACHE_DIR``), so what it sees is what a user's first runs see.
@@ -52,7 +52,7 @@ def test_kernel_recompiles_when_a_kernel_it_calls_in_another_module_changes(tmp_
     env = _env(tmp_path / "cache", pythonpath=src)
     code = f"""
         import numpy as np
-        import qpnso.tick as tick
+        import qpnso.control.tick as tick
         assert tick.__file__.startswith({str(src)!r}), tick.__file__
         c, s = np.cos(0.3), np.sin(0.3)
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -88,9 +88,9 @@ def test_every_kernel_is_cached_in_the_keyed_folder() -> None:
     assert numba.config.CACHE_DIR == os.environ.get("NUMBA_CACHE_DIR", "")
     hashed = set(compiled_cache.kernel_sources())
     kernels = 0
-    for info in pkgutil.iter_modules(qpnso.__path__):
+    for info in pkgutil.walk_packages(qpnso.__path__, "qpnso."):
         try:
-            module = importlib.import_module(f"qpnso.{info.name}")
+            module = importlib.import_module(info.name)
         except ImportError:  # an optional dependency (extras) missing
             continue
         here = [v for v in vars(module).values()
@@ -130,7 +130,7 @@ exec {os.environ.get("CC", "cc")} "$@"
     env = _env(cache, QPNSO_COMPILE="background", CC=str(slow_cc))
     build = textwrap.dedent("""
         import os, casadi as ca, numpy as np
-        from qpnso.codegen import FastFunction
+        from qpnso.model.codegen import FastFunction
         x = ca.SX.sym("x", 3)
         fn = ca.Function("compile_test", [x], [ca.sin(x) * x + ca.sumsqr(x)])
         ff = FastFunction(fn)

@@ -14,8 +14,8 @@ import pinocchio as pin
 import pytest
 
 import qpnso
-from qpnso.controller import Controller, ControllerConfig, Status
-from qpnso.hqp import HQPResult, LevelResult, LevelStatus
+from qpnso.control.controller import Controller, ControllerConfig, Status
+from qpnso.qp.hqp import HQPResult, LevelResult, LevelStatus
 
 DT = 1e-3
 
@@ -271,8 +271,8 @@ def test_no_allocation_per_tick(lwr_qp: Controller, monkeypatch) -> None:
 
     def forbidden(*args, **kwargs):
         raise AssertionError("a CasADi function was built during a tick")
-    monkeypatch.setattr(qpnso.symbolic.SymbolicModel, "function", forbidden)
-    monkeypatch.setattr(qpnso.codegen.FastFunction, "__init__", forbidden)
+    monkeypatch.setattr(qpnso.model.symbolic.SymbolicModel, "function", forbidden)
+    monkeypatch.setattr(qpnso.model.codegen.FastFunction, "__init__", forbidden)
     for _ in range(100):
         q = q + DT * lwr_qp.step(q).dq
     assert lwr_qp.qp.stats.qp_created == created

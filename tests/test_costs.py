@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import qpnso
-from qpnso.codegen import FastFunction
+from qpnso.model.codegen import FastFunction
 
 
 def reference_terms(robot: qpnso.Robot, q: np.ndarray, s: float, s_w: float) -> dict[str, float]:

@@ -8,10 +8,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from qpnso import elbow as E
+from qpnso.elbow import arm_angle as E
 from qpnso.errors import InputError, ModelError, SingularityError, UnreachableError
-from qpnso.robot import Robot, friction_from_lists, load_robot
-from qpnso.symbolic import SymbolicModel
+from qpnso.model.robot import Robot, friction_from_lists, load_robot
+from qpnso.model.symbolic import SymbolicModel
 
 SRS = ["lwr4p", "iiwa14"]
 

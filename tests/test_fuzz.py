@@ -1,4 +1,4 @@
-"""The closed-loop fuzzer (qpnso/fuzz.py): its checker sees what it must, and a seeded run holds every line."""
+"""The closed-loop fuzzer (qpnso/lab/fuzz.py): its checker sees what it must, and a seeded run holds every line."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import qpnso
-from qpnso.controller import STRATEGIES, Command, Status
+from qpnso.control.controller import STRATEGIES, Command, Status
 from qpnso.errors import InputError
-from qpnso.fuzz import (CHECK_KEYS, PROBE_KINDS, FuzzConfig, FuzzReport, HoldMonitor, Probe, TickChecker, Where,
+from qpnso.lab.fuzz import (CHECK_KEYS, PROBE_KINDS, FuzzConfig, FuzzReport, HoldMonitor, Probe, TickChecker, Where,
                         make_probe, run_fuzz, send_probe)
 
 
@@ -225,7 +225,7 @@ def test_a_tick_slow_only_in_wall_time_counts_as_preempted(tool_robot) -> None:
 def test_a_dropped_elbow_at_a_pose_that_fixes_it_is_not_a_failure_to_recover(checker, tool_robot) -> None:
     """Overdue, ``ELBOW_DROPPED``, the elbow straight (its distance from the shoulder–wrist line is 0 for every
     self-motion): counted apart, not as a failed recovery; the same at a bent elbow is a failure."""
-    from qpnso.fuzz import Recovery, arm_angle_undefined, update_recovery
+    from qpnso.lab.fuzz import Recovery, arm_angle_undefined, update_recovery
 
     straight = np.radians([10.0, 40.0, -10.0, 0.0, 20.0, 50.0, 0.0])  # q4 = 0: elbow straight
     bent = np.radians([10.0, 40.0, -10.0, -70.0, 20.0, 50.0, 0.0])
@@ -244,7 +244,7 @@ def test_solver_clock_measures_the_solver_calls_of_a_tick() -> None:
     back to the tick's CPU time when no solve ran (the compiled tick)."""
     import time
 
-    from qpnso.fuzz import SolverClock
+    from qpnso.lab.fuzz import SolverClock
 
     class Busy:
         def solve(self) -> int:
@@ -263,7 +263,7 @@ def test_solver_clock_measures_the_solver_calls_of_a_tick() -> None:
 def test_realtime_gc_freezes_for_the_block_and_unfreezes() -> None:
     import gc
 
-    from qpnso.fuzz import realtime_gc
+    from qpnso.lab.fuzz import realtime_gc
 
     assert gc.get_freeze_count() == 0
     with realtime_gc():

@@ -11,10 +11,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from qpnso import elbow as E
-from qpnso import intervals as I
+from qpnso.elbow import arm_angle as E
+from qpnso.elbow import intervals as I
 from qpnso.errors import JointLimitError, RobotNotFoundError, SingularityError
-from qpnso.robot import Robot, friction_from_lists, load_robot
+from qpnso.model.robot import Robot, friction_from_lists, load_robot
 
 TWO_PI = 2 * math.pi
 GRID = np.linspace(-math.pi, math.pi, 721)[:-1]

@@ -1,4 +1,4 @@
-"""Tests of qpnso.metrics against closed forms and independent computations."""
+"""Tests of qpnso.lab.metrics against closed forms and independent computations."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pinocchio as pin
 import pytest
 
 from qpnso.errors import InputError
-from qpnso.metrics import (
+from qpnso.lab.metrics import (
     constraint_proximity,
     elbow_mobility,
     path_length,

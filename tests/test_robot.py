@@ -42,7 +42,7 @@ def test_unknown_tool_frame_lists_frames() -> None:
 
 
 def test_user_urdf_path_loads_like_shipped() -> None:
-    robot = qpnso.load_robot(qpnso.robot.MODELS_DIR / "lwr4p.urdf")
+    robot = qpnso.load_robot(qpnso.model.robot.MODELS_DIR / "lwr4p.urdf")
     ref = qpnso.load_robot("lwr4p")
     q = np.linspace(-1, 1, 7)
     assert robot.name == "lwr4p"
@@ -116,8 +116,8 @@ def test_friction_is_the_smooth_coulomb_model(lwr) -> None:
 
 def test_friction_override_is_checked() -> None:
     with pytest.raises(qpnso.InputError, match="beta"):
-        qpnso.robot.friction_from_lists([1.5] * 7, [0.0] * 7, 7)
-    custom = qpnso.robot.friction_from_lists([2.0] * 7, [10.0] * 7, 7)
+        qpnso.model.robot.friction_from_lists([1.5] * 7, [0.0] * 7, 7)
+    custom = qpnso.model.robot.friction_from_lists([2.0] * 7, [10.0] * 7, 7)
     robot = qpnso.load_robot("lwr4p", friction=custom)
     assert np.allclose(robot.friction_torque(np.full(7, 1e6)), 2.0, atol=1e-4)
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from qpnso.errors import ConfigError, InputError
-from qpnso.intervals import Interval
-from qpnso.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
+from qpnso.elbow.intervals import Interval
+from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
 
 D = math.radians
 
@@ -84,8 +84,8 @@ def test_config_validation_and_units() -> None:
 
 @pytest.mark.skipif(importlib.util.find_spec("matplotlib") is None, reason="matplotlib not installed")
 def test_plot_intervals_writes_png(tmp_path) -> None:
-    from qpnso.plots import plot_intervals
-    from qpnso.robot import load_robot
+    from qpnso.lab.plots import plot_intervals
+    from qpnso.model.robot import load_robot
 
     robot = load_robot("lwr4p")
     path = plot_intervals(robot, np.radians([20, 60, -30, -80, 40, 70, 10]), rom=ElbowConfig(), out=tmp_path / "iv.png")

@@ -9,8 +9,8 @@ import pytest
 
 import qpnso
 from qpnso import Controller, ControllerConfig, QPSettings
-from qpnso.controller import STRATEGIES, Status
-from qpnso.hqp import HierarchicalQP, Level, LevelStatus, active_set_solve
+from qpnso.control.controller import STRATEGIES, Status
+from qpnso.qp.hqp import HierarchicalQP, Level, LevelStatus, active_set_solve
 
 Q1 = np.radians([10, 40, -10, -70, 20, 50, 0])
 TOOL = [0.0, 0.0, 0.1]
@@ -321,7 +321,7 @@ def test_a_controller_out_of_time_holds_the_tool_and_says_so(robot) -> None:
 
 
 def test_pose_correction_is_capped_only_for_large_errors() -> None:
-    from qpnso.tick import pose_correction
+    from qpnso.control.tick import pose_correction
 
     gains = np.zeros(10)
     gains[0], gains[8], gains[9] = 200.0, 0.1, 1.0
@@ -334,7 +334,7 @@ def test_pose_correction_is_capped_only_for_large_errors() -> None:
 
 
 def test_kinematic_posture_steps_are_capped() -> None:
-    from qpnso.strategies import capped
+    from qpnso.control.strategies import capped
 
     cfg = ControllerConfig(nullspace_speed_max=0.5)
     v = np.array([3.0, 4.0])
@@ -368,7 +368,7 @@ def test_a_checked_pose_is_c_ordered(robot) -> None:
     """Pinocchio hands out F-ordered rotations; the tick's kernels take C order only (another order is
     another Numba type: a kernel loaded or compiled in the first tick that passes a tool_pose, 73 ms
     measured in the offline solve)."""
-    from qpnso.robot import checked_pose
+    from qpnso.model.robot import checked_pose
 
     R, p = checked_pose(tool_pose(robot, Q1), "tool_pose")
     assert R.flags.c_contiguous and p.flags.c_contiguous
@@ -377,7 +377,7 @@ def test_a_checked_pose_is_c_ordered(robot) -> None:
 def test_finish_command_by_hand() -> None:
     """The last step of every tick on hand values: dq clipped to ±dq_max with q_des following, τ saturated
     (a limit of 0 means none given), the ROM excursion flagged, a NaN replaced by the stop command."""
-    from qpnso.tick import (FLAG_ELBOW_OUTSIDE_ROM, FLAG_INTERNAL_ERROR, FLAG_TORQUE_SATURATED,
+    from qpnso.control.tick import (FLAG_ELBOW_OUTSIDE_ROM, FLAG_INTERNAL_ERROR, FLAG_TORQUE_SATURATED,
                             finish_command)
 
     q, dq_max, tau_limit, g = np.zeros(3), np.array([1.0, 1.0, 1.0]), np.array([10.0, 0.0, 10.0]), np.ones(3)
@@ -400,7 +400,7 @@ def test_finish_command_by_hand() -> None:
 def test_sanitize_state_by_hand(robot, controllers) -> None:
     """An undefined cost is zeroed and flagged, an undefined arm angle made singular (its sine 0), a
     non-finite pose, J, A or g flagged INTERNAL_ERROR; a finite state is left alone."""
-    from qpnso.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state
+    from qpnso.control.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state
 
     ev = controllers["qp"].evaluate
     o = ev.offsets

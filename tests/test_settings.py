@@ -17,12 +17,12 @@ from hypothesis import given, settings as hsettings, strategies as st
 
 import qpnso
 from qpnso.cli import main
-from qpnso.controller import ControllerConfig
-from qpnso.costs import CostWeights
-from qpnso.hqp import QPSettings
-from qpnso.scenarios import SCENARIO_DIR, load_scenario
-from qpnso.simulation import HandModel, SimulationConfig
-from qpnso.solve import load_config
+from qpnso.control.controller import ControllerConfig
+from qpnso.model.costs import CostWeights
+from qpnso.qp.hqp import QPSettings
+from qpnso.lab.scenarios import SCENARIO_DIR, load_scenario
+from qpnso.lab.simulation import HandModel, SimulationConfig
+from qpnso.control.offline import load_config
 
 SETTINGS_CLASSES = (ControllerConfig, CostWeights, QPSettings, SimulationConfig, HandModel)
 

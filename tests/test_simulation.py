@@ -7,7 +7,7 @@ import pinocchio as pin
 import pytest
 
 import qpnso
-from qpnso.simulation import HandModel, SimulationConfig, _integrate, _tool_state
+from qpnso.lab.simulation import HandModel, SimulationConfig, _integrate, _tool_state
 
 
 def explicit_step(model, data, q, dq, tau, robot, tool_id, h, hand, ref):

@@ -7,9 +7,9 @@ import pinocchio as pin
 import pytest
 
 import qpnso
-from qpnso import trajectory as tr
-from qpnso.scenarios import load_scenario, simulate_scenario
-from qpnso.solve import RESULT_KEYS, initial_configuration, load_config, solve_trajectory
+from qpnso.control import trajectory as tr
+from qpnso.lab.scenarios import load_scenario, simulate_scenario
+from qpnso.control.offline import RESULT_KEYS, initial_configuration, load_config, solve_trajectory
 
 POSE = pin.SE3(pin.rpy.rpyToMatrix(np.pi, np.radians(30), np.pi), np.array([0.65, 0.0, 0.5]))
 
@@ -127,7 +127,7 @@ def test_simulation_settings_override_the_scenario_and_strategy_wins() -> None:
 
 
 def test_diverging_simulation_is_an_error_not_nan(monkeypatch) -> None:
-    import qpnso.simulation as sim
+    import qpnso.lab.simulation as sim
 
     monkeypatch.setattr(sim, "_integrate", lambda *a: (np.full(7, np.nan), np.full(7, np.nan)))
     with pytest.raises(sim.SimulationError, match="diverged at t = 0.000 s"):
@@ -148,7 +148,7 @@ def test_solve_summary_has_a_verdict_and_counts_slow_ticks(lwr, short_guidance) 
 
 
 def test_summarize_run_counts_ticks_longer_than_the_period() -> None:
-    from qpnso.metrics import summarize_run
+    from qpnso.lab.metrics import summarize_run
 
     t = np.arange(5) * 1e-3
     s = summarize_run({"t": t, "tick_time": np.array([1e-4, 2e-3, 1e-3, 5e-3, 9e-4])}, dt=1e-3)
@@ -158,7 +158,7 @@ def test_summarize_run_counts_ticks_longer_than_the_period() -> None:
 
 def test_tool_error_check_maps_ticks_to_csv_rows() -> None:
     """Ticks every 1 ms from t0 = 0.5 s, rows every 10 ms: the row is the last one at or before the tick."""
-    from qpnso.solve import data_row, tool_error_check
+    from qpnso.control.offline import data_row, tool_error_check
 
     rows = 0.5 + 0.01 * np.arange(11)
     t = 0.5 + 1e-3 * np.arange(101)
@@ -179,7 +179,7 @@ def test_tool_error_check_maps_ticks_to_csv_rows() -> None:
 def test_six_dof_arm_is_refused_by_the_api(tmp_path) -> None:
     import re
 
-    from qpnso.robot import MODELS_DIR
+    from qpnso.model.robot import MODELS_DIR
 
     text = (MODELS_DIR / "lwr4p.urdf").read_text()
     text = re.sub(r'\s*<joint name="joint_7".*?</joint>', "", text, flags=re.S)
@@ -201,7 +201,7 @@ def test_results_honour_the_umask(tmp_path) -> None:
     import stat
 
     from qpnso.cli import write_json
-    from qpnso.solve import RunResult
+    from qpnso.control.offline import RunResult
 
     old = os.umask(0o022)
     try:

@@ -1,4 +1,4 @@
-"""Solver benchmark (qpnso.solver_bench): KKT metrics against closed-form answers, the
+"""Solver benchmark (qpnso.lab.solver_bench): KKT metrics against closed-form answers, the
 runner's bookkeeping (skips, failures, CSV), and recorded QPs that reproduce the controller."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from qpnso import solver_bench as sb
+from qpnso.lab import solver_bench as sb
 from qpnso.errors import InputError
 
 INF = math.inf
@@ -137,9 +137,9 @@ def test_summary_csv_columns(tmp_path):
 @pytest.fixture(scope="module")
 def recorded():
     """A short run of the shipped controller (native ProxSuite, μ = 0) with the tool moving."""
-    from qpnso.controller import Controller, ControllerConfig
-    from qpnso.robot import load_robot
-    from qpnso.scenarios import load_scenario
+    from qpnso.control.controller import Controller, ControllerConfig
+    from qpnso.model.robot import load_robot
+    from qpnso.lab.scenarios import load_scenario
 
     sc = load_scenario("A")
     robot = load_robot(sc.robot)

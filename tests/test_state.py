@@ -1,4 +1,4 @@
-"""The tick's state (qpnso/state.py) against independent computations: Pinocchio for the kinematics
+"""The tick's state (qpnso/control/state.py) against independent computations: Pinocchio for the kinematics
 and dynamics, the arm-angle module (numeric, Pinocchio-based) for the elbow, the cost model's own
 functions and central differences for the cost and its gradient."""
 
@@ -9,9 +9,9 @@ import pinocchio as pin
 import pytest
 
 import qpnso
-from qpnso import elbow as E
-from qpnso.costs import CostModel, CostWeights
-from qpnso.state import PREDICTION_DAMPING, StateEvaluator, state_views
+from qpnso.elbow import arm_angle as E
+from qpnso.model.costs import CostModel, CostWeights
+from qpnso.control.state import PREDICTION_DAMPING, StateEvaluator, state_views
 
 
 @pytest.fixture(scope="module")

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from qpnso.costs import CostModel, CostWeights
+from qpnso.model.costs import CostModel, CostWeights
 from qpnso.errors import ConfigError
-from qpnso.parallel import CHECKPOINT, JobError, RunSpec, job_rng, run_jobs
-from qpnso import studies
-from qpnso.studies import (
+from qpnso.lab.parallel import CHECKPOINT, JobError, RunSpec, job_rng, run_jobs
+from qpnso.lab import studies
+from qpnso.lab.studies import (
     SelfMotionCurve,
     StudyOptions,
     arm_angle_grid,
@@ -57,7 +57,7 @@ def test_measures_match_cost_model(bench):
 
 def test_friction_gram_is_quadratic_in_tau_max(bench):
     """c_f for scaled sliding torques equals a cost model built with those torques."""
-    from qpnso.robot import Robot, friction_from_lists
+    from qpnso.model.robot import Robot, friction_from_lists
 
     q = _starts(bench, 1, seed=5)[0]
     tau = np.array([1.2, 1.5, 1.7, 1.1, 1.5, 1.9, 1.4])
@@ -80,7 +80,7 @@ def test_descend_follows_the_slope_and_stops_at_ends():
 
 
 def test_grid_holds_start_and_ends(bench):
-    from qpnso.intervals import Interval
+    from qpnso.elbow.intervals import Interval
 
     grid, i0, cyclic = arm_angle_grid(0.3, Interval(-1.0, 2.0, False), math.radians(1.0))
     assert not cyclic and grid[0] == -1.0 and grid[-1] == 2.0 and grid[i0] == 0.3

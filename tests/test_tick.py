@@ -1,4 +1,4 @@
-"""The compiled tick (qpnso/tick.py): its kernels against independent computations, and the
+"""The compiled tick (qpnso/control/tick.py): its kernels against independent computations, and the
 controller's compiled path against its general path (HierarchicalQP.solve) tick by tick."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import qpnso
-from qpnso import tick
-from qpnso.controller import Controller, ControllerConfig, Status
-from qpnso.hqp import LevelStatus, _Raw
+from qpnso.control import tick
+from qpnso.control.controller import Controller, ControllerConfig, Status
+from qpnso.qp.hqp import LevelStatus, _Raw
 
 DT = 1e-3
 Q0 = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2])
@@ -306,7 +306,7 @@ def test_interval_that_cannot_be_renewed_is_flagged_stale_on_both_paths(robot, m
         if k == 5:  # from here on the interval cannot be computed: the last one stands, flagged
             def singular(*args):
                 raise qpnso.SingularityError("test: no interval")
-            monkeypatch.setattr(qpnso.controller, "continuity_interval", singular)
+            monkeypatch.setattr(qpnso.control.controller, "continuity_interval", singular)
         a, b = fast.step(q, tool_twist=twist), slow.step(q, tool_twist=twist)
         assert_same(a, b, tol=1e-11)
         assert bool(a.status & Status.INTERVAL_STALE) == (k >= 10)  # renewed every 10 ticks while moving
@@ -354,10 +354,12 @@ def test_strategies_other_than_qp_never_compile(robot) -> None:
 def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
     """Whatever array kind the user passes (list, strided view, read-only, tuple), the tick's kernels
     run the versions the constructor's dry tick compiled: none is compiled or loaded mid-loop."""
-    from qpnso import hqp, linalg
+    from qpnso import linalg
+    from qpnso.qp import hqp
 
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
-    from qpnso import rom, state
+    from qpnso.control import state
+    from qpnso.elbow import rom
 
     kernels = [tick.qp_tick, tick.qp_tick_answer, tick.qp_command, tick.arm_angle_singular, tick.limits_status, tick.max_abs_difference,
                tick.elbow_advance, tick.elbow_bounds, state.state_views, rom.clipped_bounds, linalg.least_norm_line,

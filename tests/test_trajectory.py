@@ -1,4 +1,4 @@
-"""Tests of qpnso.trajectory: validation, CSV I/O, sampling, generators."""
+"""Tests of qpnso.control.trajectory: validation, CSV I/O, sampling, generators."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from qpnso.errors import TrajectoryError
-from qpnso.trajectory import (
+from qpnso.control.trajectory import (
     COLUMNS,
     PARABOLA_AXES,
     Trajectory,
@@ -336,7 +336,7 @@ def test_hold():
 @pytest.mark.parametrize("name", ["guidance_lwr4p.csv", "hold_lwr4p.csv"])
 def test_shipped_files(name):
     """The shipped paths are scenario A's pose (elbow-up start, far from limits), as generated."""
-    from qpnso.scenarios import load_scenario
+    from qpnso.lab.scenarios import load_scenario
 
     path = EXAMPLES / name
     assert path.stat().st_size < 400_000

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 from qpnso.errors import ConfigError, InputError
-from qpnso.intervals import Interval
+from qpnso.elbow.intervals import Interval
 
 
 @dataclass(frozen=True)

@@ -181,7 +181,7 @@ def summarize_run(arrays: Mapping[str, np.ndarray],
                   status_flags: Mapping[str, int] | None = None, dt: float | None = None) -> dict[str, float]:
     """Flat dict of the run metrics from per-tick arrays (e.g. ``RunResult.arrays``).
 
-    Uses whichever of these keys are present (names of ``qpnso.solve.RESULT_KEYS``
+    Uses whichever of these keys are present (names of ``qpnso.control.offline.RESULT_KEYS``
     and of the simulation log): ``t`` (required, s); ``ns``; ``interval_lo``,
     ``interval_hi``; ``rom_lo``, ``rom_hi`` (rad); ``tool_position``,
     ``ref_position`` (N, 3) m; ``tool_position_error`` (m) and

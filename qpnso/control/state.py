@@ -17,9 +17,9 @@ import casadi as ca
 import numpy as np
 from numba import njit
 
-from qpnso.codegen import FastFunction
-from qpnso.costs import CostModel
-from qpnso.elbow import arm_angle_expression, elbow_points
+from qpnso.model.codegen import FastFunction
+from qpnso.model.costs import CostModel
+from qpnso.elbow.arm_angle import arm_angle_expression, elbow_points
 
 
 @dataclass
@@ -136,12 +136,12 @@ def state_views(flat, offsets):  # type: ignore[no-untyped-def]
 
 
 COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT = 128, 2048
-"""Status bits of :func:`sanitize_state` (``qpnso.tick.FLAG_COST_UNDEFINED``, ``FLAG_INTERNAL_ERROR``)."""
+"""Status bits of :func:`sanitize_state` (``qpnso.control.tick.FLAG_COST_UNDEFINED``, ``FLAG_INTERNAL_ERROR``)."""
 
 
 @njit(cache=True)
 def sanitize_state(flat, offsets):  # type: ignore[no-untyped-def]
-    """Make a stacked state (:func:`qpnso.state.state_views`) safe to act on, in place; returns status
+    """Make a stacked state (:func:`qpnso.control.state.state_views`) safe to act on, in place; returns status
     bits.  A cost or cost gradient that is not finite (the tool Jacobian singular: Λ undefined) is set
     to 0 (``COST_UNDEFINED``: no cost step this tick); an arm angle or gradient that is not finite marks
     the arm angle singular (its sine measure set to 0: the elbow rows are dropped).  Anything else not

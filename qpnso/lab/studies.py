@@ -21,11 +21,11 @@ Mass/friction paper, section IV (docs/method.md §3, §9):
   true optimum.
 
 Elbow paper: ``scenarios`` runs scenarios A and B × strategies through
-:func:`qpnso.scenarios.run_scenario` and writes the layout of its Table I.
+:func:`qpnso.lab.scenarios.run_scenario` and writes the layout of its Table I.
 
 How an optimum is found.  The paper follows the null-space gradient from the
 start posture until it stops.  Here the self-motion is parametrised exactly by
-the arm angle ``ns`` (closed-form IK, :func:`qpnso.elbow.self_motion`) over the
+the arm angle ``ns`` (closed-form IK, :func:`qpnso.elbow.arm_angle.self_motion`) over the
 continuity interval of the start [E 9]: the cost is sampled on a grid of arm
 angles (``grid_step_deg``, ``ns0`` and the interval ends on the grid), followed
 downhill (or uphill) from ``ns0`` to the first grid minimum (maximum), and
@@ -38,10 +38,10 @@ against 0.01° sampling.
 Non-singular start: ``σ_min(J Jᵀ) ≥ singular_threshold`` (default 1e-4, i.e. the
 smallest singular value of the 6×7 tool Jacobian ≥ 0.01 m/rad or rad/rad; it
 rejects about 5 % of uniform draws on the LWR4+) and a defined arm angle
-(:func:`qpnso.elbow.arm_angle_status`); singular draws are redrawn and counted.
+(:func:`qpnso.elbow.arm_angle.arm_angle_status`); singular draws are redrawn and counted.
 
 Every study writes into ``OUT``: ``checkpoint.jsonl`` (see
-:mod:`qpnso.parallel`), ``results.csv``, a PNG and, last, ``summary.json``.
+:mod:`qpnso.lab.parallel`), ``results.csv``, a PNG and, last, ``summary.json``.
 Entry point: :func:`run_study`.
 """
 
@@ -61,13 +61,13 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from qpnso.codegen import FastFunction
-from qpnso.costs import CostModel, smooth_coulomb
-from qpnso.elbow import SelfMotion, arm_angle_status, branch, self_motion
+from qpnso.model.codegen import FastFunction
+from qpnso.model.costs import CostModel, smooth_coulomb
+from qpnso.elbow.arm_angle import SelfMotion, arm_angle_status, branch, self_motion
 from qpnso.errors import ConfigError, InputError, ModelError, SingularityError
-from qpnso.intervals import Interval, continuity_interval
-from qpnso.parallel import RunSpec, job_rng, job_seed_sequence, run_jobs
-from qpnso.robot import Robot, load_robot
+from qpnso.elbow.intervals import Interval, continuity_interval
+from qpnso.lab.parallel import RunSpec, job_rng, job_seed_sequence, run_jobs
+from qpnso.model.robot import Robot, load_robot
 
 PAPER = {
     "workspace": {"mass_reduction_pct": {"mean": 44.23, "sd": 20.97},
@@ -93,7 +93,7 @@ class StudyOptions:
     ``mass_shares``: weights ``w`` of the trade-off (mass share, friction 1 − w);
     ``trials``, ``friction_sd``: uncertainty trials per pose and relative sd of
     ``tau_max``; ``duration_scale``: fraction of the scenario paths to run;
-    ``compile``: CasADi evaluation mode of the workers (:mod:`qpnso.codegen`).
+    ``compile``: CasADi evaluation mode of the workers (:mod:`qpnso.model.codegen`).
     """
 
     robot: str = "lwr4p"
@@ -490,9 +490,9 @@ def uncertainty_job(index: int, seed: int, opts: StudyOptions) -> dict[str, Any]
 def scenarios_job(index: int, seed: int, opts: StudyOptions) -> dict[str, Any]:
     """One (scenario, strategy) pair of :data:`SCENARIO_JOBS` through ``run_scenario``."""
     try:
-        from qpnso.scenarios import load_scenario, run_scenario
+        from qpnso.lab.scenarios import load_scenario, run_scenario
     except ImportError as exc:
-        raise ConfigError(f"the scenarios study needs qpnso.scenarios, which cannot be imported: {exc}") from None
+        raise ConfigError(f"the scenarios study needs qpnso.lab.scenarios, which cannot be imported: {exc}") from None
     name, strategy = SCENARIO_JOBS[index]
     job_seed = int(job_seed_sequence(seed, index).generate_state(1)[0])
     metrics = run_scenario(name, strategy, seed=job_seed, duration_scale=opts.duration_scale)
@@ -573,7 +573,7 @@ def scenarios_summary(results: list[dict], opts: StudyOptions) -> dict[str, Any]
 
 # --------------------------------------------------------------- outputs
 def _atomic_bytes(path: Path, data: bytes) -> None:
-    from qpnso.solve import atomic_write
+    from qpnso.control.offline import atomic_write
 
     atomic_write(path, lambda f: f.write(data))
 
@@ -745,9 +745,9 @@ def run_study(
         raise ConfigError(f"n must be >= 1, got {n}")
     if name == "scenarios":
         try:
-            import qpnso.scenarios  # noqa: F401
+            import qpnso.lab.scenarios  # noqa: F401
         except ImportError as exc:
-            raise ConfigError(f"the scenarios study needs qpnso.scenarios, which cannot be imported: {exc}") from None
+            raise ConfigError(f"the scenarios study needs qpnso.lab.scenarios, which cannot be imported: {exc}") from None
     stored = opts.subset(study.uses)
     worker_options = {**stored, "compile": opts.compile}
     spec = RunSpec(name, n_jobs, int(seed), stored)

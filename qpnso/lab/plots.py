@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from qpnso.elbow import arm_angle, branch, self_motion
+from qpnso.elbow.arm_angle import arm_angle, branch, self_motion
 from qpnso.errors import InputError
-from qpnso.intervals import continuity_interval, feasible_intervals
-from qpnso.robot import Robot
-from qpnso.rom import ElbowConfig, clip_rom
+from qpnso.elbow.intervals import continuity_interval, feasible_intervals
+from qpnso.model.robot import Robot
+from qpnso.elbow.rom import ElbowConfig, clip_rom
 
 
 def _pyplot():  # type: ignore[no-untyped-def]
@@ -97,7 +97,7 @@ def plot_intervals(
 
 def _save(fig, out: str | Path) -> Path:  # type: ignore[no-untyped-def]
     """Write a figure atomically (temporary file, then rename) and close it."""
-    from qpnso.solve import atomic_write
+    from qpnso.control.offline import atomic_write
 
     path = Path(out)
     atomic_write(path, lambda f: fig.savefig(f, dpi=110, format="png"))

@@ -18,19 +18,19 @@ import pinocchio as pin
 from typing import TYPE_CHECKING
 
 from qpnso.errors import ConfigError
-from qpnso.robot import Robot, load_robot
+from qpnso.model.robot import Robot, load_robot
 from qpnso.settings import SettingError, check, from_dict, out_of_range
-from qpnso.trajectory import Trajectory, guidance_path
+from qpnso.control.trajectory import Trajectory, guidance_path
 
 if TYPE_CHECKING:
-    from qpnso.solve import RunResult
+    from qpnso.control.offline import RunResult
 
 try:  # Python 3.11+
     import tomllib
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
-SCENARIO_DIR = Path(__file__).resolve().parent.parent / "examples" / "scenarios"
+SCENARIO_DIR = Path(__file__).resolve().parents[2] / "examples" / "scenarios"
 """Where the shipped scenario files are."""
 
 
@@ -56,7 +56,7 @@ class Scenario:
 
     def start(self, robot: Robot) -> np.ndarray:
         """Start configuration (rad): closed-form IK at ``ns0_deg`` on ``branch``."""
-        from qpnso.elbow import Branch, ik
+        from qpnso.elbow.arm_angle import Branch, ik
 
         return robot.check_q(ik(robot, self.tool_pose(), np.radians(self.ns0_deg), Branch(*self.branch)), "start")
 
@@ -112,7 +112,7 @@ class PathTable:
 @dataclass(frozen=True)
 class ScenarioFile:
     """A scenario file's tables, type-checked by :func:`qpnso.settings.from_dict`
-    (``controller`` holds :class:`qpnso.controller.ControllerConfig` settings)."""
+    (``controller`` holds :class:`qpnso.control.controller.ControllerConfig` settings)."""
 
     scenario: ScenarioTable
     start: StartTable
@@ -141,7 +141,7 @@ def scenario_path(name_or_path: str | Path) -> Path:
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Read a scenario file (tables :class:`ScenarioFile`); a missing, unknown or wrongly
     typed key, or a value out of range, is a :class:`ConfigError` naming the file and the key."""
-    from qpnso.controller import ControllerConfig
+    from qpnso.control.controller import ControllerConfig
 
     p = scenario_path(name_or_path)
     try:
@@ -170,13 +170,13 @@ def run_scenario(name: str, strategy: str, seed: int = 0, duration_scale: float 
 
 def simulate_scenario(name: str, strategy: str | None = None, duration_scale: float = 1.0, progress=None,
                       settings: dict | None = None) -> "RunResult":
-    """Simulate scenario ``name``: the per-tick arrays and summary (:class:`qpnso.solve.RunResult`).
+    """Simulate scenario ``name``: the per-tick arrays and summary (:class:`qpnso.control.offline.RunResult`).
 
     Controller settings: the scenario file's ``[controller]``, then ``settings``
     (e.g. a user's config file and CLI flags), then ``strategy`` if given.
     """
-    from qpnso.controller import Controller, ControllerConfig
-    from qpnso.simulation import simulate
+    from qpnso.control.controller import Controller, ControllerConfig
+    from qpnso.lab.simulation import simulate
 
     sc = load_scenario(name)
     robot = load_robot(sc.robot)

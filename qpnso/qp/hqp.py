@@ -46,7 +46,7 @@ Numba kernels (:mod:`qpnso.linalg`).  Same answers as the general cascade
 runs) 77–95 µs median per solve against 195–223 µs for the general cascade.
 Level 2 on the line is :meth:`HierarchicalQP.solve_line_level`
 (:meth:`~HierarchicalQP.line_level_raw`, then :meth:`~HierarchicalQP.line_level_result`); the
-controller's compiled tick (:mod:`qpnso.tick`) builds its arrays in one kernel,
+controller's compiled tick (:mod:`qpnso.control.tick`) builds its arrays in one kernel,
 calls ``line_level_raw`` and judges the answer with the same kernel
 (:func:`checked_line_answer`) in its own.
 
@@ -1285,7 +1285,7 @@ class HierarchicalQP:
                          n_slack: int, qp: LevelQP | None = None) -> LevelResult:
         """Level 2 of the line fast path from the arrays of :func:`line_qp_arrays` (``v = [t; σ]``,
         ``x = x0 + t·direction``, rad/s): :meth:`line_level_raw`, then :meth:`line_level_result`
-        (``residual`` is left to the caller).  The controller's compiled tick (:mod:`qpnso.tick`)
+        (``residual`` is left to the caller).  The controller's compiled tick (:mod:`qpnso.control.tick`)
         calls the two parts itself and counts its ticks with :meth:`count_solve`."""
         raw = finite_data_raw(H, g, C, l, u, box_l, box_u) or \
             self.line_level_raw(H, g, C, l, u, box_l, box_u, x0, direction, n_slack, qp)

@@ -3,7 +3,7 @@
 ``run_fuzz(FuzzConfig(ticks=N, seed=S))`` runs episodes of a *kinematic closed
 loop* (``q ← q + dt·cmd.dq``: the plant follows the velocity command exactly,
 as a position-controlled arm; the offline solve's model), one strategy per
-episode in turn, each on its cached :class:`~qpnso.controller.Controller`:
+episode in turn, each on its cached :class:`~qpnso.control.controller.Controller`:
 
 * a random start: uniform within the limits, near one or two limits (0–3°
   inside), or near a singular arm angle (straight elbow, wrist over the
@@ -60,11 +60,11 @@ from typing import Callable, Iterator
 import numpy as np
 import pinocchio as pin
 
-from qpnso.controller import STRATEGIES, Command, Controller, ControllerConfig, Status
-from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG, elbow_points
+from qpnso.control.controller import STRATEGIES, Command, Controller, ControllerConfig, Status
+from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG, elbow_points
 from qpnso.errors import ConfigError, QpnsoError
-from qpnso.robot import Robot, load_robot
-from qpnso.strategies import clip_norm
+from qpnso.model.robot import Robot, load_robot
+from qpnso.control.strategies import clip_norm
 
 Progress = Callable[[int, int], None]
 Observer = Callable[["Where", dict, "Command | None", "tuple[float, float]"], None]

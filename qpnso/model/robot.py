@@ -1,7 +1,7 @@
 """Robot model: a Pinocchio model with its tool frame, limits and joint friction.
 
 ``load_robot`` is the single entry point.  Everything numeric here is plain
-Pinocchio; the symbolic twin lives in :mod:`qpnso.symbolic`.
+Pinocchio; the symbolic twin lives in :mod:`qpnso.model.symbolic`.
 
 Conventions (Pinocchio's):
 * ``q`` in rad, ``dq`` in rad/s, torques in N·m;
@@ -29,7 +29,7 @@ from qpnso.errors import (
     RobotNotFoundError,
 )
 
-MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 """Folder of the robot description files shipped with qpnso."""
 
 SHIPPED_URDF = {"lwr4p": "lwr4p.urdf", "iiwa14": "iiwa14.urdf"}

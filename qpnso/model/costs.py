@@ -1,7 +1,7 @@
 """Mass, inertia and friction costs felt at the tool, with exact derivatives.
 
 The measures of the mass/friction paper (docs/method.md §2–3), as CasADi expressions of
-``q`` built once per robot from :class:`qpnso.symbolic.SymbolicModel`:
+``q`` built once per robot from :class:`qpnso.model.symbolic.SymbolicModel`:
 
 * ``Λv⁻¹ = Jv A⁻¹ Jvᵀ``, ``Λw⁻¹ = Jw A⁻¹ Jwᵀ`` [M 2] (3×3, 1/kg and
   1/(kg·m²)), with ``J`` the world-aligned tool Jacobian;
@@ -24,12 +24,12 @@ from dataclasses import asdict, dataclass, fields
 import casadi as ca
 import numpy as np
 
-from qpnso.codegen import FastFunction
+from qpnso.model.codegen import FastFunction
 from qpnso.errors import InputError
-from qpnso.robot import Robot, as_vector
+from qpnso.model.robot import Robot, as_vector
 from qpnso.settings import check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
-from qpnso.symbolic import SymbolicModel
+from qpnso.model.symbolic import SymbolicModel
 
 TERMS = ("mass", "inertia", "friction_force", "friction_torque")
 """Names of the four cost terms of [M 18], in order."""
@@ -112,7 +112,7 @@ class CostModel:
     term; by default it is the median |term| over ``n_scale_samples`` random
     configurations (seed 0), or 1 with ``normalize=False``.  ``compile``
     chooses how the value/gradient function is evaluated (see
-    :mod:`qpnso.codegen`; default from ``QPNSO_COMPILE``).
+    :mod:`qpnso.model.codegen`; default from ``QPNSO_COMPILE``).
     """
 
     def __init__(

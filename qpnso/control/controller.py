@@ -3,20 +3,20 @@
 ``Controller(robot, ControllerConfig(...))``, ``reset(q0)``, then every tick
 ``step(q, dq, tool_twist) -> Command``.  Each tick:
 
-1. the arm's state from one CasADi call (:mod:`qpnso.state`);
+1. the arm's state from one CasADi call (:mod:`qpnso.control.state`);
 2. the elbow: arm angle unwrapped along the run, continuity interval
-   (:mod:`qpnso.intervals`, cached while the tool pose is unchanged), the ROM
-   clipped to it with the safety margin, the stiffness sigmoid (:mod:`qpnso.rom`),
-   kept across ticks in one elbow-memory array by the kernels of :mod:`qpnso.tick`;
-3. the hierarchical QP (:mod:`qpnso.hqp`): level 1 ``J q̇ = v_tool + K_p e_pose``,
-   level 2 whatever the strategy asks (:mod:`qpnso.strategies`), hard joint
+   (:mod:`qpnso.elbow.intervals`, cached while the tool pose is unchanged), the ROM
+   clipped to it with the safety margin, the stiffness sigmoid (:mod:`qpnso.elbow.rom`),
+   kept across ticks in one elbow-memory array by the kernels of :mod:`qpnso.control.tick`;
+3. the hierarchical QP (:mod:`qpnso.qp.hqp`): level 1 ``J q̇ = v_tool + K_p e_pose``,
+   level 2 whatever the strategy asks (:mod:`qpnso.control.strategies`), hard joint
    position/velocity bounds on both;
 4. the command: ``dq``, ``q_des = q + dt·dq`` and the torque
    ``τ = g(q) + Nᵀ τ_null`` with the dynamically consistent null-space projector.
 
 For the ``qp`` strategy, whenever the QP's line fast path applies (a full-rank
 tool Jacobian whose exact solutions meet the joint bounds: nearly every tick),
-steps 2–4 run as the *compiled tick* (:mod:`qpnso.tick`): one Numba call from
+steps 2–4 run as the *compiled tick* (:mod:`qpnso.control.tick`): one Numba call from
 the state (read in place) through the elbow to the level-2 QP, the same
 persistent ProxSuite object, one Numba call for the checks, the command and the
 torque — the general path's answer to round-off, at a fraction of its Python
@@ -39,18 +39,18 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.compiled_cache import announce_numba_if_cold
-from qpnso.costs import CostModel, CostWeights
+from qpnso.model.costs import CostModel, CostWeights
 from qpnso.errors import ConfigError, InputError, QpnsoError
-from qpnso.hqp import LINE_ANSWER_OK, HierarchicalQP, Level, QPSettings, level_failure, solved_vector
-from qpnso.elbow import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
-from qpnso.intervals import continuity_interval
+from qpnso.qp.hqp import LINE_ANSWER_OK, HierarchicalQP, Level, QPSettings, level_failure, solved_vector
+from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
+from qpnso.elbow.intervals import continuity_interval
 from qpnso.linalg import dynamically_consistent_projection
-from qpnso.robot import Robot, as_vector, checked_pose, finite_scalar
-from qpnso.rom import ElbowConfig, stiffness
+from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
+from qpnso.elbow.rom import ElbowConfig, stiffness
 from qpnso.settings import SettingError, check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
-from qpnso.state import StateEvaluator, TickState
-from qpnso.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
+from qpnso.control.state import StateEvaluator, TickState
+from qpnso.control.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
                          FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED,
                          FLAG_QP_DEADLINE, FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, FLAG_TORQUE_SATURATED, LINE_OK, NS,
                          P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, TICK_Q_REFUSED,
@@ -61,7 +61,7 @@ from qpnso.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTS
 
 def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Status:
     """Flags of a solved tick: level 1's residual (``TOOL_LIMITED``) and the elbow rows' slack
-    (``ELBOW_SLACK``) against what is reported (:func:`qpnso.tick.answer_bits`)."""
+    (``ELBOW_SLACK``) against what is reported (:func:`qpnso.control.tick.answer_bits`)."""
     return _status(answer_bits(-1.0 if tool_residual is None else tool_residual,
                                slack.max() if slack is not None and slack.size else -1.0))
 
@@ -70,7 +70,7 @@ _NOT_FINITE_MESSAGE = "the command was not finite: joints stopped"
 
 
 def _stamped(cmd: "Command", bits: int, t0: float) -> "Command":
-    """A finished command (:func:`qpnso.tick.finish_command` done) given its status ``bits``, the stop
+    """A finished command (:func:`qpnso.control.tick.finish_command` done) given its status ``bits``, the stop
     message if they say the command was not finite, and its tick time since ``t0``."""
     if bits & FLAG_INTERNAL_ERROR and not cmd.message:
         cmd.message = _NOT_FINITE_MESSAGE
@@ -205,7 +205,7 @@ class ControllerConfig:
         return asdict(self)
 
     def elbow(self) -> ElbowConfig:
-        """The ROM/stiffness settings as :class:`qpnso.rom.ElbowConfig`."""
+        """The ROM/stiffness settings as :class:`qpnso.elbow.rom.ElbowConfig`."""
         d = None if self.stiffness_inflection_deg is None else np.radians(self.stiffness_inflection_deg)
         return ElbowConfig(
             half_width_deg=self.rom_half_width_deg,
@@ -259,7 +259,7 @@ class Controller:
     """Hierarchical-QP null-space controller of a 7-DOF arm (docs/method.md §7)."""
 
     def __init__(self, robot: Robot, config: ControllerConfig | None = None) -> None:
-        from qpnso.strategies import make_strategy
+        from qpnso.control.strategies import make_strategy
 
         robot.require_redundant_arm()  # ModelError naming the arm, instead of ROM_EMPTY ticks
         self.robot = robot
@@ -297,7 +297,7 @@ class Controller:
 
     @property
     def compiled_tick(self) -> bool:
-        """Whether ``step`` runs the compiled tick (:mod:`qpnso.tick`) when the line fast path applies;
+        """Whether ``step`` runs the compiled tick (:mod:`qpnso.control.tick`) when the line fast path applies;
         False: always the general path through :meth:`HierarchicalQP.solve`.  Only the ``qp``
         strategy with ``QPSettings.line_fast_path`` has one."""
         return self._compiled_tick
@@ -310,7 +310,7 @@ class Controller:
 
     def _warm_up(self) -> None:
         """Dry ticks at the robot's sample configuration, then forgotten: the Numba kernels of
-        :mod:`qpnso.linalg`, :mod:`qpnso.hqp` and :mod:`qpnso.tick` compile (seconds, once per machine, then
+        :mod:`qpnso.linalg`, :mod:`qpnso.qp.hqp` and :mod:`qpnso.control.tick` compile (seconds, once per machine, then
         cached on disk) or load here, for the compiled tick and the general path alike, never in a
         control tick."""
         announce_numba_if_cold()  # one line on stderr when the kernels compile now (empty cache)
@@ -428,7 +428,7 @@ class Controller:
 
     def _finish(self, cmd: Command, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float,
                 dropped: bool) -> Command:
-        """Every tick's last step (:func:`qpnso.tick.finish_command`): τ within the effort limits, an
+        """Every tick's last step (:func:`qpnso.control.tick.finish_command`): τ within the effort limits, an
         arm angle outside ROM_t flagged, a non-finite command replaced by the stop command; the status
         and the tick time set."""
         bits |= finish_command(qv, cmd.dq, cmd.q_des, cmd.tau, gravity, self._tau_limit, self.robot.dq_max,
@@ -464,7 +464,7 @@ class Controller:
 
     def _begin(self, qv: np.ndarray, twist: np.ndarray) -> tuple[TickState, ElbowState, Status]:
         """The general tick's start: ``q`` checked, the state (made safe; drift along the previous
-        command with its tool part replaced by ``twist``: :func:`qpnso.state.predicted_velocity`), the elbow."""
+        command with its tool part replaced by ``twist``: :func:`qpnso.control.state.predicted_velocity`), the elbow."""
         status = self._check_input(qv)
         state = self.evaluate(qv, self._dq_prev, twist)
         if state.flags:
@@ -473,9 +473,9 @@ class Controller:
         return state, elbow, status | elbow.status if elbow.status else status
 
     def _compiled(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float) -> Command | tuple | None:
-        """The ``qp`` strategy's tick as :func:`qpnso.tick.qp_tick` (the CasADi state read in place →
+        """The ``qp`` strategy's tick as :func:`qpnso.control.tick.qp_tick` (the CasADi state read in place →
         level-2 line QP, one Numba call), the back end's level-2 solve (:meth:`HierarchicalQP.line_level_raw`)
-        and :func:`qpnso.tick.qp_tick_answer` (checks, command, torque): the general path's answer to
+        and :func:`qpnso.control.tick.qp_tick_answer` (checks, command, torque): the general path's answer to
         round-off.  Returns the Command; or, when the line fast path does not apply, ``(state, elbow,
         status)`` for the general path to go on from; or None when nothing was done (singular arm angle)."""
         flat = self.evaluate.raw(qv, self._dq_prev, twist)
@@ -519,7 +519,7 @@ class Controller:
         return self._finish(cmd, qv, flat[o[9]:o[10]], bits | fallback.value, t0, False)
 
     def _qp_tick(self, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool) -> tuple:
-        """:func:`qpnso.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""
+        """:func:`qpnso.control.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""
         return qp_tick(qv, flat, self.evaluate.offsets, self._limits, self.ref_rotation, self.ref_position, twist,
                        self._elbow_memory, self.ns0, self._elbow_params, advance, self._gains, self._qp_tol,
                        self._line.identity, *self._line.outputs())
@@ -534,7 +534,7 @@ class Controller:
 
     def _pose_error(self, state: TickState) -> np.ndarray:
         """(position error m, rotation error rad) of the reference w.r.t. the tool, world frame
-        (:func:`qpnso.tick.pose_error`; ``pinocchio.log3`` for an angle near π)."""
+        (:func:`qpnso.control.tick.pose_error`; ``pinocchio.log3`` for an angle near π)."""
         error, ok = pose_error(state.tool_rotation, state.tool_position, self.ref_rotation, self.ref_position)
         if not ok:
             error[3:] = pin.log3(self.ref_rotation @ state.tool_rotation.T)
@@ -548,14 +548,14 @@ class Controller:
         self.ref_rotation = pin.exp3(dt * twist[3:]) @ self.ref_rotation
 
     def _velocity_bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Joint velocity limits and a position damper (:func:`qpnso.tick.velocity_bounds`): q never
+        """Joint velocity limits and a position damper (:func:`qpnso.control.tick.velocity_bounds`): q never
         crosses its limits; outside a limit the same rows push back at rate ``joint_limit_gain``."""
         r = self.robot
         return velocity_bounds(q, r.q_min, r.q_max, r.dq_max, self.config.joint_limit_gain, self.config.recovery_speed)
 
     def _elbow(self, state: TickState) -> ElbowState:
         """Arm angle (unwrapped), continuity interval, ROM_t [E 10], [E 11] and K(ns) [E 6]
-        (:func:`qpnso.tick.elbow_advance`, :func:`qpnso.tick.elbow_bounds`).
+        (:func:`qpnso.control.tick.elbow_advance`, :func:`qpnso.control.tick.elbow_bounds`).
 
         A singular arm angle (wrist near the vertical through the shoulder, or a
         straight elbow) drops the elbow constraints for the tick.
@@ -576,7 +576,7 @@ class Controller:
 
     def _update_interval(self, q: np.ndarray, pose: np.ndarray) -> None:
         """Recompute the continuity interval [E 9] at ``q`` into the elbow memory; when it cannot be, the
-        previous one (or, before any, the full circle) stands, marked stale (:func:`qpnso.tick.interval_stale`)."""
+        previous one (or, before any, the full circle) stands, marked stale (:func:`qpnso.control.tick.interval_stale`)."""
         try:
             interval = continuity_interval(self.robot, q)
         except QpnsoError:

@@ -1,7 +1,7 @@
 """The control tick's arithmetic, compiled with Numba (docs/method.md §7).
 
-Every per-tick formula of :mod:`qpnso.controller` and of the ``qp`` strategy
-(:mod:`qpnso.strategies`) between the CasADi state and the QP is a small
+Every per-tick formula of :mod:`qpnso.control.controller` and of the ``qp`` strategy
+(:mod:`qpnso.control.strategies`) between the CasADi state and the QP is a small
 kernel here, and the general Python path calls these same kernels one by one:
 
 * :func:`pose_error` — level 1's error ``(p_ref − p, log₃(R_ref Rᵀ))`` (m, rad; world frame);
@@ -12,7 +12,7 @@ kernel here, and the general Python path calls these same kernels one by one:
   continuity interval's age, ROM_t and the stiffness K(ns), on the elbow memory (:func:`elbow_memory`).
 
 For the ``qp`` strategy with the hierarchical QP's line fast path
-(:mod:`qpnso.hqp`, module doc), :func:`qp_tick` composes them with the line
+(:mod:`qpnso.qp.hqp`, module doc), :func:`qp_tick` composes them with the line
 kernels into one call, from the stacked CasADi state (read in place) to the
 level-2 line QP, and :func:`qp_tick_answer` judges the QP's answer and forms
 the command and torque.  Python then only calls CasADi and ProxSuite (and the
@@ -28,18 +28,18 @@ import math
 import numpy as np
 from numba import njit
 
-from qpnso.hqp import (LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, qp_data_finite,
+from qpnso.qp.hqp import (LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, qp_data_finite,
                        task_line)
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, matvec, nullspace_part
-from qpnso.rom import clipped_bounds, sigmoid_stiffness
-from qpnso.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state, state_views
+from qpnso.elbow.rom import clipped_bounds, sigmoid_stiffness
+from qpnso.control.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state, state_views
 
 LOG3_MAX_ANGLE = math.pi - 1e-3
 """rad: :func:`pose_error` reports (``ok`` False) a rotation error closer to π than this, where
 its axis is ill-conditioned; the caller then uses ``pinocchio.log3``."""
 
 LINE_NO_POSE = 3
-"""A code of :func:`qp_tick` besides those of :func:`qpnso.hqp.task_line`: the rotation error is
+"""A code of :func:`qp_tick` besides those of :func:`qpnso.qp.hqp.task_line`: the rotation error is
 too close to π for the kernel's log₃."""
 TICK_NOT_FINITE = 4
 """A code of :func:`qp_tick`: ``q`` has a NaN or an infinite entry; nothing was done (the caller raises)."""
@@ -58,7 +58,7 @@ TICK_NEED_INTERVAL = 6
 """A code of :func:`qp_tick`: the elbow memory advanced and the continuity interval must be recomputed
 (:func:`store_interval`), then :func:`qp_tick` called again with ``advance`` False."""
 
-# Status bits (qpnso.controller.Status has the same values)
+# Status bits (qpnso.control.controller.Status has the same values)
 FLAG_QP_FAILED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_ROM_EMPTY = 1, 2, 4, 8
 FLAG_Q_OUT_OF_LIMITS, FLAG_INTERVAL_STALE, FLAG_TOOL_LIMITED = 16, 32, 64
 FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = COST_UNDEFINED_BIT, 256, 512, 1024
@@ -124,7 +124,7 @@ def level1_target(twist, e, gains, drift):  # type: ignore[no-untyped-def]
     J̇q̇ along the predicted command, ``gains[10]`` = ½dt).  Over a tick at q̇ the tool moves by
     ``dt·J q̇ + ½dt²·J̇q̇``; with J̇q̇ taken out, a null-space motion no longer drags a held tool (it did by
     about 1.2 µm·(|q̇|/(rad/s))², 8 µm and 2e-5 rad for elbow-up's returns in the fuzz), nor does a pull
-    that stops (:func:`qpnso.state.predicted_velocity`)."""
+    that stops (:func:`qpnso.control.state.predicted_velocity`)."""
     return twist + pose_correction(e, gains) - gains[10] * drift
 
 
@@ -253,7 +253,7 @@ NS, IV_LO, IV_HI, IV_FULL, IV_KNOWN, IV_AGE, IV_POSE = 0, 1, 2, 3, 4, 5, 6
 """Indices: the last arm angle (rad, unwrapped along the run); the cached continuity interval (rad,
 around that angle), full circle (1/0), known (1; 2: known but its renewal failed, stale; 0: none), its age
 (ticks), and from IV_POSE the 12 entries
-of the tool pose (:attr:`qpnso.state.TickState.pose`) it was computed at."""
+of the tool pose (:attr:`qpnso.control.state.TickState.pose`) it was computed at."""
 
 
 def elbow_memory(ns: float) -> np.ndarray:
@@ -325,7 +325,7 @@ def elbow_advance(ns_wrapped, pose, memory, period, moved_tol):  # type: ignore[
 def elbow_bounds(ns, memory, ns0, params):  # type: ignore[no-untyped-def]
     """``(rom_lo, rom_hi, empty, iv_lo, iv_hi, K)`` at arm angle ``ns`` (rad): the cached continuity
     interval moved by whole turns to be expressed around ``ns`` (none known, or a full circle: the
-    circle centred on ``ns``) [E 9], ROM_t clipped to it [E 10], [E 11] (:func:`qpnso.rom.clipped_bounds`)
+    circle centred on ``ns``) [E 9], ROM_t clipped to it [E 10], [E 11] (:func:`qpnso.elbow.rom.clipped_bounds`)
     and the stiffness K(ns) [E 6] (N·m/rad)."""
     full = memory[IV_KNOWN] == 0.0 or memory[IV_FULL] != 0.0
     if full:
@@ -342,7 +342,7 @@ class LineTickBuffers:
     """The arrays :func:`qp_tick` writes, allocated once per controller (nothing is boxed
     per tick): ``step`` the cost step's filter state (rad/s, read and advanced), ``line`` (3, n)
     the rows ``x0``, ``d``, ``x1`` (rad/s), and the level-2 line QP ``H, g, C, l, u, box_l, box_u``
-    (``v = [t; σ]``, one soft elbow row) in the shapes of :func:`qpnso.hqp.line_qp_arrays`; and,
+    (``v = [t; σ]``, one soft elbow row) in the shapes of :func:`qpnso.qp.hqp.line_qp_arrays`; and,
     read only, ``identity`` the Hessian of level 2's ``½‖q̇‖²``."""
 
     def __init__(self, step: np.ndarray) -> None:
@@ -380,7 +380,7 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
             step, line, H, g, C, l, u, box_l, box_u):  # type: ignore[no-untyped-def]
     """The ``qp`` strategy's tick up to its level-2 QP, in one call: the compiled tick (module doc).
 
-    ``flat`` the stacked CasADi state at ``q`` (:class:`qpnso.state.StateEvaluator`, cut at
+    ``flat`` the stacked CasADi state at ``q`` (:class:`qpnso.control.state.StateEvaluator`, cut at
     ``offsets``); ``limits`` (7, n) the rows q_low, q_high (``q`` as checked), q_min, q_max (rad),
     dq_max (rad/s), the accepted q_low, q_high (rad: beyond, :data:`TICK_Q_REFUSED`); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
     ROM centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
@@ -392,12 +392,12 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`), the arm angle's singularity
     (:data:`TICK_ELBOW_DROPPED`), the elbow (:func:`elbow_advance`, :func:`elbow_bounds`), level 1's
     error (:func:`pose_error`; :data:`LINE_NO_POSE` near π), its line of exact solutions within the
-    joint bounds (:func:`qpnso.hqp.task_line`) and least-norm point ``x1`` (the safe fallback), the
-    filtered cost step and the elbow row, and the level-2 line QP (:func:`qpnso.hqp.line_qp_arrays`)
+    joint bounds (:func:`qpnso.qp.hqp.task_line`) and least-norm point ``x1`` (the safe fallback), the
+    filtered cost step and the elbow row, and the level-2 line QP (:func:`qpnso.qp.hqp.line_qp_arrays`)
     written into the buffers of :class:`LineTickBuffers` (``step`` read and advanced).  Returns
     ``(code, ns, rom_lo, rom_hi, iv_lo, iv_hi, K, ‖e_p‖, ‖e_R‖, ‖J x1 − b1‖, cost, status bits)``;
-    ``code`` is :data:`qpnso.hqp.LINE_OK` when the line QP is ready; :data:`LINE_NO_POSE`,
-    :data:`qpnso.hqp.LINE_SINGULAR` or :data:`qpnso.hqp.LINE_CUT` send the tick to the general path,
+    ``code`` is :data:`qpnso.qp.hqp.LINE_OK` when the line QP is ready; :data:`LINE_NO_POSE`,
+    :data:`qpnso.qp.hqp.LINE_SINGULAR` or :data:`qpnso.qp.hqp.LINE_CUT` send the tick to the general path,
     the elbow advanced but no buffer written."""
     nothing = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
     limit = limits_status(q, limits[0], limits[1])
@@ -450,10 +450,10 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
 def qp_tick_answer(v, line, box_l, box_u, C, l, u, feasibility_tol, flat, offsets, q, dq_meas, stiffness, dt,
                    damping, residual, bits, tau_limit, dq_max, ns, rom_lo, rom_hi):  # type: ignore[no-untyped-def]
     """The compiled tick after its level-2 QP: the answer ``v = [t; σ]`` judged
-    (:func:`qpnso.hqp.checked_line_answer`), the command, and every tick's last step
+    (:func:`qpnso.qp.hqp.checked_line_answer`), the command, and every tick's last step
     (:func:`finish_command`, g(q) from ``flat``).  Returns ``(code, dq rad/s, q_des rad, τ N·m, status
     bits)`` (``bits`` plus :func:`answer_bits` and the finishing bits); ``code`` ≠
-    :data:`qpnso.hqp.LINE_ANSWER_OK`: the answer is refused (the caller falls back), the arrays are then
+    :data:`qpnso.qp.hqp.LINE_ANSWER_OK`: the answer is refused (the caller falls back), the arrays are then
     meaningless."""
     code, x, _, slack = checked_line_answer(v, line[1], line[0], box_l, box_u, C, l, u, 1, feasibility_tol)
     if code != LINE_ANSWER_OK:

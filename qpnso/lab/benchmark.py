@@ -15,8 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from qpnso.costs import CostModel, CostWeights
-from qpnso.robot import Robot
+from qpnso.model.costs import CostModel, CostWeights
+from qpnso.model.robot import Robot
 
 
 @dataclass
@@ -60,7 +60,7 @@ def bench_cost(robot: Robot, n: int = 5000, seed: int = 0) -> list[Timing]:
     """``value`` + ``gradient`` (mass + friction force weights) at random configurations."""
     rng = np.random.default_rng(seed)
     qs = [robot.random_q(rng, margin=0.1) for _ in range(64)]
-    from qpnso.codegen import compile_mode
+    from qpnso.model.codegen import compile_mode
 
     out = []
     for mode in (("background", "off") if compile_mode() != "off" else ("off",)):
@@ -85,7 +85,7 @@ def bench_cost(robot: Robot, n: int = 5000, seed: int = 0) -> list[Timing]:
 def bench_interval(robot: Robot, n: int = 1000, seed: int = 0) -> list[Timing]:
     """``continuity_interval`` at ``n`` random configurations within the limits."""
     from qpnso.errors import QpnsoError
-    from qpnso.intervals import continuity_interval
+    from qpnso.elbow.intervals import continuity_interval
 
     rng = np.random.default_rng(seed)
     qs = []
@@ -131,7 +131,7 @@ def interleaved(runs: dict[str, Callable[[int], np.ndarray]], n: int, chunk: int
 def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None = None) -> list[Timing]:
     """``Controller.step`` per strategy, tool held, from the sample configuration, with Pink's
     ``solve_ik`` for reference when installed; the rows are timed in turns (:func:`interleaved`)."""
-    from qpnso.controller import STRATEGIES, Controller, ControllerConfig
+    from qpnso.control.controller import STRATEGIES, Controller, ControllerConfig
 
     strategies = strategies or STRATEGIES
     q0 = robot.sample_configuration()

@@ -1,7 +1,7 @@
 """Joint-limit continuity intervals of the arm angle (docs/method.md §5, [E 7]–[E 9]).
 
 With the tool pose and the branch held, each joint is a function ``θ_k(ns)``
-(:class:`qpnso.elbow.SelfMotion`).  ``Ψ_k`` is the set of arm angles where joint
+(:class:`qpnso.elbow.arm_angle.SelfMotion`).  ``Ψ_k`` is the set of arm angles where joint
 ``k`` is within its limits [E 7], ``Ψ = ∩ Ψ_k`` [E 8], and the continuity
 interval is the arc of ``Ψ`` that holds the current arm angle [E 9].
 
@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from qpnso.elbow import (
+from qpnso.elbow.arm_angle import (
     SelfMotion,
     _CONST,
     _KIND,
@@ -54,7 +54,7 @@ from qpnso.elbow import (
     self_motion,
 )
 from qpnso.errors import SingularityError
-from qpnso.robot import Robot
+from qpnso.model.robot import Robot
 
 TWO_PI = 2.0 * math.pi
 SINGULAR_TOL = 1e-12

@@ -16,10 +16,10 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpnso.controller import Controller, ControllerConfig
+from qpnso.control.controller import Controller, ControllerConfig
 from qpnso.errors import ConfigError, InputError, QpnsoError, UnreachableError
-from qpnso.robot import Robot
-from qpnso.trajectory import Trajectory
+from qpnso.model.robot import Robot
+from qpnso.control.trajectory import Trajectory
 
 try:  # Python 3.11+
     import tomllib
@@ -111,7 +111,7 @@ def config_values(path: str | Path | None, overrides: dict | None = None) -> dic
     is a valid config file); a setting there, or given both at the top level and under
     ``[controller]``, is an error rather than silently dropped.
     """
-    from qpnso.scenarios import SCENARIO_TABLES
+    from qpnso.lab.scenarios import SCENARIO_TABLES
     from qpnso.settings import SettingError, check_table, show
 
     values: dict = {}
@@ -163,8 +163,8 @@ def initial_configuration(robot: Robot, pose: pin.SE3, arm_angle: float = 0.0,
     """A configuration (rad) reaching ``pose`` with the arm angle closest to ``arm_angle``
     (0 = elbow up), joints 2° inside their limits, preferring those at least
     ``interval_margin_deg`` from the ends of their continuity interval (S-R-S arms)."""
-    from qpnso.elbow import Branch, ik
-    from qpnso.intervals import continuity_interval
+    from qpnso.elbow.arm_angle import Branch, ik
+    from qpnso.elbow.intervals import continuity_interval
 
     candidates = []
     offsets = np.radians(np.arange(0, 181, 5))
@@ -188,7 +188,7 @@ def initial_configuration(robot: Robot, pose: pin.SE3, arm_angle: float = 0.0,
 
 def _interval_room(robot: Robot, q: np.ndarray, continuity_interval) -> float:
     """Distance (rad) of q's arm angle from its continuity interval's nearer end."""
-    from qpnso.elbow import arm_angle
+    from qpnso.elbow.arm_angle import arm_angle
 
     try:
         iv = continuity_interval(robot, q)
@@ -242,8 +242,8 @@ class Recorder:
 
     def result(self) -> RunResult:
         """The arrays and their summary (docs/method.md §9 metrics, status counts, felt mass and friction)."""
-        from qpnso.controller import Status
-        from qpnso.metrics import summarize_run
+        from qpnso.control.controller import Status
+        from qpnso.lab.metrics import summarize_run
 
         arrays = {k: np.asarray(v) for k, v in self.rec.items()}
         summary = summarize_run(arrays, {f.name: f.value for f in Status if f.value}, dt=self.ctrl.config.dt)

@@ -5,7 +5,7 @@ Three parts:
 * **Problem sets**: the QPs of every level, tick by tick, recorded from real
   controller runs by wrapping ``ctrl.qp.solve`` of one instance
   (:class:`QPRecorder`) and rebuilding each level with the cascade's public
-  functions (:func:`qpnso.hqp.build_level_qp`, :func:`qpnso.hqp.advance_cascade`),
+  functions (:func:`qpnso.qp.hqp.build_level_qp`, :func:`qpnso.qp.hqp.advance_cascade`),
   advanced with the controller's own answer of the level above: the benchmark
   solves exactly the QPs the controller solved.  Stored form (:class:`BenchProblem`):
   ``min ½vᵀPv + qᵀv  s.t.  l ≤ Cv ≤ u,  box_l ≤ v ≤ box_u`` (∓inf allowed), the
@@ -15,7 +15,7 @@ Three parts:
 * **Runner** (:func:`run_problems`): every installed ``qpsolvers`` back end (cold
   one-shot solves) and ProxSuite's native dense API (``"proxsuite"``: one
   ``proxqp.dense.QP`` per problem sequence, level and shape, ``update`` + ``solve``
-  warm-started with the previous result, as :mod:`qpnso.hqp` uses it), on the
+  warm-started with the previous result, as :mod:`qpnso.qp.hqp` uses it), on the
   same problems, problem-major (all solvers interleaved on each problem).
   Metrics as qpbenchmark defines them (see :func:`kkt_residuals`): success =
   the solver says solved AND primal residual, dual residual and duality gap
@@ -44,7 +44,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from qpnso.errors import ConfigError, InputError
-from qpnso.hqp import Cascade, Level, LevelQP, QPSettings, advance_cascade, build_level_qp
+from qpnso.qp.hqp import Cascade, Level, LevelQP, QPSettings, advance_cascade, build_level_qp
 
 __all__ = [
     "BenchProblem", "BenchSettings", "Outcome", "QPRecorder", "StandardForm", "CSV_COLUMNS", "DEFAULT",
@@ -65,14 +65,14 @@ BENCH_REGULARIZATION = 1e-7
 CSV_COLUMNS = ("solver", "settings", "success_rate", "runtime_sgm", "runtime_median_us",
                "primal_residual", "dual_residual", "duality_gap")
 """First columns of ``results.csv`` (more follow)."""
-PROBLEM_DIR = Path(__file__).resolve().parent.parent / "solvers" / "problems"
+PROBLEM_DIR = Path(__file__).resolve().parents[2] / "solvers" / "problems"
 """Where the committed problem sets are (``solvers/problems`` of the checkout)."""
 
 
 # ================================================================ problems
 @dataclass
 class BenchProblem:
-    """One level's QP of one tick, in the variable ``v = [z; σ]`` of :class:`qpnso.hqp.LevelQP`.
+    """One level's QP of one tick, in the variable ``v = [z; σ]`` of :class:`qpnso.qp.hqp.LevelQP`.
 
     ``min ½vᵀPv + qᵀv`` s.t. ``l ≤ Cv ≤ u`` and ``box_l ≤ v ≤ box_u`` (None: no box).
     ``x_prev`` (n,) and ``Z`` (n, r) decode a solution into joint velocity
@@ -120,7 +120,7 @@ def level_problems(n: int, levels: Sequence[Level], lb: np.ndarray | None, ub: n
 
     Rebuilds the cascade with :func:`build_level_qp` / :func:`advance_cascade`,
     advanced with the controller's own answer ``result.levels[k].x`` (an
-    :class:`qpnso.hqp.HQPResult`), so each problem is the one the back end got.
+    :class:`qpnso.qp.hqp.HQPResult`), so each problem is the one the back end got.
     Levels with no free direction (no QP was solved) and levels after a
     failed one are left out.
     """
@@ -417,7 +417,7 @@ class _Native:
         else:
             obj.update(**data)
             obj.solve()
-            if obj.results.info.status != self._px.QPSolverOutput.PROXQP_SOLVED:  # as qpnso.hqp: retry cold
+            if obj.results.info.status != self._px.QPSolverOutput.PROXQP_SOLVED:  # as qpnso.qp.hqp: retry cold
                 obj.settings.initial_guess = self._px.InitialGuess.EQUALITY_CONSTRAINED_INITIAL_GUESS
                 obj.init(**data)
                 obj.solve()
@@ -679,7 +679,7 @@ FULL_PLAN = RecordPlan(ticks=6000, chunk_ticks=50, period=1000, skip=100)
 
 
 def _track(ctrl, traj, q0: np.ndarray, ticks: int) -> None:
-    """Offline tracking of ``traj`` (as :func:`qpnso.solve.solve_trajectory`: twist
+    """Offline tracking of ``traj`` (as :func:`qpnso.control.offline.solve_trajectory`: twist
     feed-forward, pose reference, ``q ← q + dt·q̇``) for ``ticks`` ticks at most."""
     import pinocchio as pin
 
@@ -696,9 +696,9 @@ def _track(ctrl, traj, q0: np.ndarray, ticks: int) -> None:
 def _sources(seed: int):
     """``(name, robot name, controller settings, trajectory factory, q0 factory)`` of each recorded run:
     scenarios A and B (guidance), the guidance path on the iiwa14, held tools at random postures."""
-    from qpnso.scenarios import load_scenario
-    from qpnso.solve import initial_configuration
-    from qpnso.trajectory import guidance_path, hold
+    from qpnso.lab.scenarios import load_scenario
+    from qpnso.control.offline import initial_configuration
+    from qpnso.control.trajectory import guidance_path, hold
 
     out = []
     for name in ("A", "B"):
@@ -727,8 +727,8 @@ def record_problem_set(path: Path, full: bool = False, seed: int = 0, progress: 
     """Run the controller (default ``qp`` strategy, native ProxSuite) on every source of
     :func:`_sources`, record the QPs of the ticks the plan keeps, compute their references,
     save them to ``path``.  Deterministic for a given ``seed``."""
-    from qpnso.controller import Controller, ControllerConfig
-    from qpnso.robot import load_robot
+    from qpnso.control.controller import Controller, ControllerConfig
+    from qpnso.model.robot import load_robot
 
     plan = FULL_PLAN if full else QUICK_PLAN
     problems: list[BenchProblem] = []
@@ -743,7 +743,7 @@ def record_problem_set(path: Path, full: bool = False, seed: int = 0, progress: 
             progress(f"{name}: {rec.ticks} ticks, {len(rec.problems)} problems kept")
     compute_reference(problems)
     meta = {"plan": plan.__dict__, "seed": seed, "regularization": regularization,
-            "recorded_with": "qpnso.solver_bench.record_problem_set", "qp_backend": NATIVE}
+            "recorded_with": "qpnso.lab.solver_bench.record_problem_set", "qp_backend": NATIVE}
     return save_problems(path, problems, meta)
 
 
@@ -764,10 +764,10 @@ def closed_loop(backends: Sequence[str], scenario: str = "A", seconds: float = 2
     defaults, i.e. what ``ControllerConfig(qp_backend=name)`` does).  A back end the
     controller refuses is reported with its error.
     """
-    from qpnso.controller import ControllerConfig
-    from qpnso.robot import load_robot
-    from qpnso.scenarios import load_scenario
-    from qpnso.solve import solve_trajectory
+    from qpnso.control.controller import ControllerConfig
+    from qpnso.model.robot import load_robot
+    from qpnso.lab.scenarios import load_scenario
+    from qpnso.control.offline import solve_trajectory
 
     sc = load_scenario(scenario)
     robot = load_robot(sc.robot)

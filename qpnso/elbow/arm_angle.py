@@ -38,8 +38,8 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.errors import InputError, ModelError, SingularityError, UnreachableError
-from qpnso.robot import POSE_NOT_FINITE, POSE_NOT_ROTATION, Robot, as_vector, pose_defect
-from qpnso.symbolic import SymbolicModel, joint_kind_and_axis
+from qpnso.model.robot import POSE_NOT_FINITE, POSE_NOT_ROTATION, Robot, as_vector, pose_defect
+from qpnso.model.symbolic import SymbolicModel, joint_kind_and_axis
 
 Z0 = np.array([0.0, 0.0, 1.0])
 """World vertical used as the arm-angle reference [E 3]."""

@@ -21,12 +21,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from qpnso.controller import Controller
+from qpnso.control.controller import Controller
 from qpnso.errors import QpnsoError
 from qpnso.settings import check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
-from qpnso.solve import Recorder, RunResult
-from qpnso.trajectory import Trajectory
+from qpnso.control.offline import Recorder, RunResult
+from qpnso.control.trajectory import Trajectory
 
 
 class SimulationError(QpnsoError):
@@ -92,7 +92,7 @@ def simulate(controller: Controller, path: Trajectory, q0: np.ndarray,
              config: SimulationConfig | None = None, progress=None) -> RunResult:
     """Simulate hands-on guidance of the tool along ``path`` from ``q0`` (rad).
 
-    Returns the per-tick arrays of :data:`qpnso.solve.RESULT_KEYS` plus
+    Returns the per-tick arrays of :data:`qpnso.control.offline.RESULT_KEYS` plus
     ``dq_measured`` (rad/s), ``hand_wrench`` (N, N·m) and ``tool_twist``
     (m/s, rad/s), and the run's summary (metrics of docs/method.md §9, felt mass and
     friction every 10 ticks).

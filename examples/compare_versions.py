@@ -62,8 +62,8 @@ def main() -> None:
     strategies = (args.strategies or ("qp" if smoke else ",".join(qpnso.STRATEGIES))).split(",")
     n = args.n or (300 if smoke else 3000)
     runs = {}
-    assert rewrite_imports("from qpnso.qp.hqp import x; import qpnso; qpnso.control.tick") == \
-        "from qpnso_other.qp.hqp import x; import qpnso_other; qpnso_other.control.tick"
+    assert rewrite_imports("from qpnso.qp.line import x; import qpnso; qpnso.control.tick") == \
+        "from qpnso_other.qp.line import x; import qpnso_other; qpnso_other.control.tick"
     for lib, tag in ((qpnso, "this"), (qpnso if smoke else load_other(args.other), "other")):
         robot = lib.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.1])
         q0 = robot.sample_configuration()

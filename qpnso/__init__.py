@@ -13,20 +13,19 @@ from qpnso import compiled_cache as _compiled_cache  # noqa: E402
 
 _compiled_cache.begin_keyed_numba_cache(__version__)
 
-from qpnso.control.controller import STRATEGIES, Command, Controller, ControllerConfig, Status
+from qpnso.control.controller import Controller
+
+from qpnso.control.config import STRATEGIES, Command, ControllerConfig, Status
 from qpnso.model.costs import TERMS, CostModel, CostWeights, DirectionalCost
 from qpnso.elbow.arm_angle import (
     ArmAngle,
-    Branch,
     ElbowPoints,
     arm_angle,
     arm_angle_gradient,
     arm_angle_status,
-    branch,
     elbow_points,
-    ik,
-    self_motion,
 )
+from qpnso.elbow.srs import Branch, branch, ik, self_motion
 from qpnso.errors import (
     ConfigError,
     FrameNotFoundError,
@@ -41,7 +40,7 @@ from qpnso.errors import (
     TrajectoryError,
     UnreachableError,
 )
-from qpnso.qp.hqp import HierarchicalQP, Level, QPSettings
+from qpnso.qp import HierarchicalQP, Level, QPSettings
 from qpnso.elbow.intervals import Interval, continuity_interval, feasible_intervals
 from qpnso.model.robot import JointFriction, Robot, load_robot
 from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness

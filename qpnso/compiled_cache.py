@@ -6,8 +6,9 @@ Two kinds of compiled code are kept on disk, both under ``QPNSO_CACHE_DIR``
 * the C libraries of the CasADi functions (:mod:`qpnso.model.codegen`), in that folder itself, each
   named by the hash of its generated source, so they can never be stale;
 * the machine code of the Numba kernels (``@njit(cache=True)`` in :mod:`qpnso.linalg`,
-  :mod:`qpnso.qp.hqp`, :mod:`qpnso.control.tick`, :mod:`qpnso.elbow.rom`, :mod:`qpnso.control.state`), in
-  ``numba/<key>/``.  Numba checks a cached kernel against its *own* source file only, so a kernel
+  :mod:`qpnso.qp.cascade`, :mod:`qpnso.qp.line`, :mod:`qpnso.qp.backends`, :mod:`qpnso.control.tick`,
+  :mod:`qpnso.elbow.rom`, :mod:`qpnso.control.state`), in ``numba/<key>/``.  Numba checks a cached
+  kernel against its *own* source file only, so a kernel
   that calls a kernel of another module kept the callee's old code after that module changed.
   The key therefore hashes, with the qpnso, Numba and NumPy versions, every package file a kernel
   can reach (:func:`kernel_sources`): any change to one of them gives a fresh, empty folder.  A

@@ -9,7 +9,7 @@ against NumPy/SciPy (tests/test_linalg.py).
 
 * :func:`least_norm_line` — Householder QR of ``Aᵀ`` for a full-row-rank
   (n−1)×n ``A``: least-norm solution ``A⁺b``, unit null vector, and a lower
-  bound on ``σ_min(A)`` (the hierarchical QP's line fast path, :mod:`qpnso.qp.hqp`);
+  bound on ``σ_min(A)`` (the hierarchical QP's line fast path, :mod:`qpnso.qp.line`);
 * :func:`cholesky` / :func:`cholesky_solve` — for symmetric positive-definite
   matrices given by their upper triangle (Pinocchio's ``crba`` fills only that);
 * :func:`nullspace_part` — ``v − J⁺Jv``, the part of ``v`` in ``ker J``;

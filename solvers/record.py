@@ -6,7 +6,7 @@
 Each source (scenarios A and B, the guidance path on the iiwa14, held tools at
 random postures of both robots) is tracked offline by the shipped controller;
 the QPs of both levels are recorded tick by tick by wrapping that controller's
-``qp.solve`` (see ``qpnso.lab.solver_bench.record_problem_set``), and each gets a
+``qp.solve`` (see ``qpnso.lab.solver_bench.record.record_problem_set``), and each gets a
 high-accuracy reference solution (DAQP / quadprog / ProxQP at 1e-12, cross-checked).
 """
 

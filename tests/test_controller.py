@@ -14,8 +14,9 @@ import pinocchio as pin
 import pytest
 
 import qpnso
-from qpnso.control.controller import Controller, ControllerConfig, Status
-from qpnso.qp.hqp import HQPResult, LevelResult, LevelStatus
+from qpnso.control.controller import Controller
+from qpnso.control.config import ControllerConfig, Status
+from qpnso.qp import HQPResult, LevelResult, LevelStatus
 
 DT = 1e-3
 

@@ -9,6 +9,7 @@ import pinocchio as pin
 import pytest
 
 from qpnso.elbow import arm_angle as E
+from qpnso.elbow import srs as S
 from qpnso.errors import InputError, ModelError, SingularityError, UnreachableError
 from qpnso.model.robot import Robot, friction_from_lists, load_robot
 from qpnso.model.symbolic import SymbolicModel
@@ -43,7 +44,7 @@ def _reference_arm_angle(robot: Robot, q: np.ndarray) -> float:
 
 
 def test_geometry_read_from_model(robot: Robot) -> None:
-    g = E.srs_geometry(robot)
+    g = S.srs_geometry(robot)
     expected = {"lwr4p": (0.40, 0.39), "iiwa14": (0.42, 0.40)}[robot.name]  # MODELS-AND-ELBOW.md
     assert (g.upper_arm_m, g.forearm_m) == pytest.approx(expected, abs=1e-12)
     data = robot.model.createData()
@@ -57,9 +58,9 @@ def test_non_srs_models_are_refused(robot: Robot) -> None:
     model = robot.model.copy()
     model.jointPlacements[4] = pin.SE3(np.eye(3), model.jointPlacements[4].translation + [0.01, 0, 0])
     bent = Robot("bent", model, robot.tool_frame_id, friction_from_lists([1.5] * 7, [20.0] * 7, 7))
-    assert not E.is_srs(bent)
+    assert not S.is_srs(bent)
     with pytest.raises(ModelError, match="not S-R-S"):
-        E.srs_geometry(bent)
+        S.srs_geometry(bent)
     q = np.full(7, 0.4)
     assert E.arm_angle_status(bent, q).ok  # the arm angle itself stays defined
 
@@ -117,21 +118,21 @@ def test_singular_configurations_are_reported(robot: Robot) -> None:
         with pytest.raises(SingularityError):
             E.arm_angle_gradient(robot, q)
     with pytest.raises(SingularityError, match="joint 4"):
-        E.branch(robot, bent_shoulder_straight_elbow)
+        S.branch(robot, bent_shoulder_straight_elbow)
 
 
 def test_ik_round_trips(robot: Robot, rng) -> None:
     data = robot.model.createData()
     for q in _regular_qs(robot, rng, 100):
-        pose, ns, b = robot.tool_pose(q), E.arm_angle(robot, q), E.branch(robot, q)
-        q_ik = E.ik(robot, pose, ns, b)
+        pose, ns, b = robot.tool_pose(q), E.arm_angle(robot, q), S.branch(robot, q)
+        q_ik = S.ik(robot, pose, ns, b)
         assert np.abs(q_ik - q).max() < 1e-9
-        for q_other in E.ik(robot, pose, rng.uniform(-np.pi, np.pi, 5), b):
+        for q_other in S.ik(robot, pose, rng.uniform(-np.pi, np.pi, 5), b):
             pin.framesForwardKinematics(robot.model, data, q_other)
             assert np.abs(data.oMf[robot.tool_frame_id].homogeneous - pose.homogeneous).max() < 1e-9
-            assert E.branch(robot, q_other) == b
+            assert S.branch(robot, q_other) == b
         ns_new = rng.uniform(-np.pi, np.pi)
-        q_new = E.ik(robot, pose, ns_new, b)
+        q_new = S.ik(robot, pose, ns_new, b)
         if E.arm_angle_status(robot, q_new).ok:
             assert abs(np.angle(np.exp(1j * (E.arm_angle(robot, q_new) - ns_new)))) < 1e-9
 
@@ -140,9 +141,9 @@ def test_all_eight_branches(robot: Robot, rng) -> None:
     q = _regular_qs(robot, rng, 1)[0]
     pose = robot.tool_pose(q)
     for signs in itertools.product((1, -1), repeat=3):
-        q_b = E.ik(robot, pose, 0.7, signs)
+        q_b = S.ik(robot, pose, 0.7, signs)
         assert np.abs(robot.tool_pose(q_b).homogeneous - pose.homogeneous).max() < 1e-9
-        assert E.branch(robot, q_b).as_tuple() == signs
+        assert S.branch(robot, q_b).as_tuple() == signs
 
 
 def test_bad_input(robot: Robot) -> None:
@@ -150,15 +151,15 @@ def test_bad_input(robot: Robot) -> None:
     pose = robot.tool_pose(q)
     far = pin.SE3(pose.rotation, pose.translation + np.array([2.0, 0, 0]))
     with pytest.raises(UnreachableError, match="out of reach.*by"):
-        E.ik(robot, far, 0.0, (1, 1, 1))
+        S.ik(robot, far, 0.0, (1, 1, 1))
     with pytest.raises(InputError, match="NaN"):
-        E.ik(robot, pose, float("nan"), (1, 1, 1))
+        S.ik(robot, pose, float("nan"), (1, 1, 1))
     bad = pose.homogeneous.copy()
     bad[0, 3] = np.nan
     with pytest.raises(InputError, match="NaN"):
-        E.ik(robot, bad, 0.0, (1, 1, 1))
+        S.ik(robot, bad, 0.0, (1, 1, 1))
     for wrong in [(1, 0, 1), (1, 1), "abc", 3, (1, 2, 1)]:
         with pytest.raises(InputError, match="branch"):
-            E.ik(robot, pose, 0.0, wrong)
+            S.ik(robot, pose, 0.0, wrong)
     with pytest.raises(InputError, match="NaN"):
         E.arm_angle(robot, np.full(7, np.nan))

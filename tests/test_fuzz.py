@@ -1,4 +1,4 @@
-"""The closed-loop fuzzer (qpnso/lab/fuzz.py): its checker sees what it must, and a seeded run holds every line."""
+"""The closed-loop fuzzer (qpnso/lab/fuzz/): its checker sees what it must, and a seeded run holds every line."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import qpnso
-from qpnso.control.controller import STRATEGIES, Command, Status
+from qpnso.control.config import STRATEGIES, Command, Status
 from qpnso.errors import InputError
 from qpnso.lab.fuzz import (CHECK_KEYS, PROBE_KINDS, FuzzConfig, FuzzReport, HoldMonitor, Probe, TickChecker, Where,
                         make_probe, run_fuzz, send_probe)

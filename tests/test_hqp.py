@@ -1,4 +1,4 @@
-"""Tests of qpnso.qp.hqp against an independent sequential reference (equality form, exact active-set solvers)."""
+"""Tests of qpnso.qp (the hierarchical QP) against an independent sequential reference (equality form, exact active-set solvers)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from hypothesis import given, settings as hsettings, strategies as st
 from scipy.optimize import linprog
 
 from qpnso.errors import InputError, SolverError
-from qpnso.qp.hqp import (Cascade, HierarchicalQP, Level, LevelStatus, QPSettings, advance_cascade,
-                       build_level_qp)
+from qpnso.qp import HierarchicalQP, Level, LevelStatus, QPSettings
+from qpnso.qp.cascade import Cascade, advance_cascade, build_level_qp
 
 N = 7
 BACKENDS = ["proxsuite", "daqp", "quadprog"]
@@ -531,7 +531,7 @@ def test_line_fast_path_any_width():
 def test_strictly_convex_is_a_positive_definite_hessian_in_z(seed):
     """The last level's answer is taken as unique (no advance, no least-norm step) exactly when its
     Hessian in z has no eigenvalue at or below ``rank_tol·max(1, λ_max)`` (NumPy's eigenvalues)."""
-    from qpnso.qp.hqp import strictly_convex
+    from qpnso.qp.cascade import strictly_convex
 
     rng = np.random.default_rng(seed)
     r = int(rng.integers(1, 6))
@@ -551,13 +551,13 @@ def test_warm_up_loads_every_cascade_kernel_and_forgets(tmp_path):
     import sys
 
     code = """
-import qpnso.qp.hqp as h
-qp = h.HierarchicalQP(7)
-kernels = (h.level_qp_arrays, h.level_answer, h.line_qp_arrays, h.checked_line_answer, h.task_line,
-           h.least_norm_point, h.qp_data_finite)
+from qpnso.qp import backends, cascade, line, results, solver
+qp = solver.HierarchicalQP(7)
+kernels = (cascade.level_qp_arrays, cascade.level_answer, line.line_qp_arrays, line.checked_line_answer, line.task_line,
+           line.least_norm_point, backends.qp_data_finite)
 assert all(len(k.signatures) == 0 for k in kernels)
 qp.warm_up()
-print([k.__name__ for k in kernels if len(k.signatures) != 1], qp.stats == h.HQPStats(), qp._backend.qp_objects)
+print([k.__name__ for k in kernels if len(k.signatures) != 1], qp.stats == results.HQPStats(), qp._backend.qp_objects)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip().splitlines()[-1] == "[] True 0"
@@ -569,7 +569,8 @@ def test_a_level_answer_is_judged_in_joint_space(seed, soft):
     """The check of a level's answer (``level_answer`` kernel) against joint space, by NumPy: ``x = x_prev + Z z``;
     accepted iff the joint bounds and the hard rows hold within ``feasibility_tol``; a soft row's slack is its
     violation at x.  Answers perturbed across a bound or a row are refused as ``INACCURATE``."""
-    from qpnso.qp.hqp import _Raw, _trusted_level
+    from qpnso.qp.backends import _Raw
+    from qpnso.qp.levels import _trusted_level
 
     levels, lb, ub = random_problem(seed)
     levels[1].C = np.vstack([levels[1].C, np.random.default_rng(seed).standard_normal((1, N))])

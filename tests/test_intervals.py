@@ -12,6 +12,7 @@ import pinocchio as pin
 import pytest
 
 from qpnso.elbow import arm_angle as E
+from qpnso.elbow import srs as S
 from qpnso.elbow import intervals as I
 from qpnso.errors import JointLimitError, RobotNotFoundError, SingularityError
 from qpnso.model.robot import Robot, friction_from_lists, load_robot
@@ -45,8 +46,8 @@ def _near_end(arcs: list[tuple[float, float]], x: np.ndarray, tol: float) -> np.
     return out
 
 
-def _end_is_exact(robot: Robot, pose: pin.SE3, b: E.Branch, ns: float, cause: I.Cause) -> None:
-    q = E.ik(robot, pose, ns, b)
+def _end_is_exact(robot: Robot, pose: pin.SE3, b: S.Branch, ns: float, cause: I.Cause) -> None:
+    q = S.ik(robot, pose, ns, b)
     if cause.kind == "limit":
         limit = robot.q_max[cause.joint] if cause.bound == "max" else robot.q_min[cause.joint]
         assert abs(q[cause.joint] - limit) < 1e-9
@@ -61,9 +62,9 @@ def test_brute_force_1000_poses(robot: Robot) -> None:
     data = robot.model.createData()
     n_checked = n_bounded = 0
     for q in _regular_qs(robot, rng, 1000):
-        pose, b = robot.tool_pose(q), E.branch(robot, q)
+        pose, b = robot.tool_pose(q), S.branch(robot, q)
         psi, per_joint = I.feasible_intervals(robot, pose, b, per_joint=True)
-        joints = E.ik(robot, pose, GRID, b)
+        joints = S.ik(robot, pose, GRID, b)
         feasible = np.all((joints >= robot.q_min) & (joints <= robot.q_max), axis=1)
         inside = _inside(psi, GRID)
         away = ~_near_end(psi, GRID, STEP)
@@ -94,7 +95,7 @@ def test_brute_force_1000_poses(robot: Robot) -> None:
 def test_arc_convention_across_pi(robot: Robot) -> None:
     rng = np.random.default_rng(5)
     for q in _regular_qs(robot, rng, 300):
-        psi = I.feasible_intervals(robot, robot.tool_pose(q), E.branch(robot, q))
+        psi = I.feasible_intervals(robot, robot.tool_pose(q), S.branch(robot, q))
         assert psi == sorted(psi)
         for lo, hi in psi:
             assert -math.pi <= lo < math.pi and lo < hi <= lo + TWO_PI
@@ -146,7 +147,7 @@ def _panda() -> Robot:
 
 def test_panda_numerical_interval_ends_are_limit_crossings() -> None:
     robot = _panda()
-    assert not E.is_srs(robot)
+    assert not S.is_srs(robot)
     rng = np.random.default_rng(3)
     for q in _regular_qs(robot, rng, 4, margin=0.1):
         interval = I.continuity_interval(robot, q)

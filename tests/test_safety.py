@@ -9,8 +9,9 @@ import pytest
 
 import qpnso
 from qpnso import Controller, ControllerConfig, QPSettings
-from qpnso.control.controller import STRATEGIES, Status
-from qpnso.qp.hqp import HierarchicalQP, Level, LevelStatus, active_set_solve
+from qpnso.control.config import STRATEGIES, Status
+from qpnso.qp import HierarchicalQP, Level, LevelStatus
+from qpnso.qp.backends import active_set_solve
 
 Q1 = np.radians([10, 40, -10, -70, 20, 50, 0])
 TOOL = [0.0, 0.0, 0.1]

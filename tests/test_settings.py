@@ -17,9 +17,9 @@ from hypothesis import given, settings as hsettings, strategies as st
 
 import qpnso
 from qpnso.cli import main
-from qpnso.control.controller import ControllerConfig
+from qpnso.control.config import ControllerConfig
 from qpnso.model.costs import CostWeights
-from qpnso.qp.hqp import QPSettings
+from qpnso.qp import QPSettings
 from qpnso.lab.scenarios import SCENARIO_DIR, load_scenario
 from qpnso.lab.simulation import HandModel, SimulationConfig
 from qpnso.control.offline import load_config

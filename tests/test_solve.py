@@ -200,7 +200,7 @@ def test_results_honour_the_umask(tmp_path) -> None:
     import os
     import stat
 
-    from qpnso.cli import write_json
+    from qpnso.cli.common import write_json
     from qpnso.control.offline import RunResult
 
     old = os.umask(0o022)

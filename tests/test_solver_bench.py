@@ -1,4 +1,4 @@
-"""Solver benchmark (qpnso.lab.solver_bench): KKT metrics against closed-form answers, the
+"""Solver benchmark (the package qpnso.lab.solver_bench): KKT metrics against closed-form answers, the
 runner's bookkeeping (skips, failures, CSV), and recorded QPs that reproduce the controller."""
 
 from __future__ import annotations
@@ -11,6 +11,10 @@ import numpy as np
 import pytest
 
 from qpnso.lab import solver_bench as sb
+from qpnso.lab.solver_bench import metrics as sb_metrics
+from qpnso.lab.solver_bench import problems as sb_problems
+from qpnso.lab.solver_bench import record as sb_record
+from qpnso.lab.solver_bench import runs as sb_runs
 from qpnso.errors import InputError
 
 INF = math.inf
@@ -114,18 +118,18 @@ def test_infeasible_problem_and_crashing_solver_are_failures_with_status(monkeyp
 def test_inaccurate_answer_is_a_failure():
     p = hand_qp()
     strict = sb.BenchSettings("strict", 1e-9, 1e-9)
-    o = sb._outcome(p, sb.standard_form(p), strict, "x", True, "found", 1e-5,
-                    np.array([0.5, 1.5 + 1e-4]), None, np.array([0.5]), np.array([1.0, 0.0]))
+    o = sb_runs._outcome(p, sb.standard_form(p), strict, "x", True, "found", 1e-5,
+                         np.array([0.5, 1.5 + 1e-4]), None, np.array([0.5]), np.array([1.0, 0.0]))
     assert not o.success and o.status == "inaccurate: primal/dual/gap"
-    slow = sb._outcome(p, sb.standard_form(p), strict, "x", True, "found", 1.0,
-                       np.array([0.5, 1.5]), None, np.array([0.5]), np.array([1.0, 0.0]))
+    slow = sb_runs._outcome(p, sb.standard_form(p), strict, "x", True, "found", 1.0,
+                            np.array([0.5, 1.5]), None, np.array([0.5]), np.array([1.0, 0.0]))
     assert not slow.success and slow.status == "timeout"
 
 
 def test_summary_csv_columns(tmp_path):
     outcomes, _ = sb.run_problems([hand_qp(), hand_qp(name="hand2")], ["proxsuite", "daqp"])
     rows = sb.summarize(outcomes)
-    path = sb.write_results_csv(rows, tmp_path / "results.csv")
+    path = sb_metrics.write_results_csv(rows, tmp_path / "results.csv")
     with open(path) as f:
         header = next(csv.reader(f))
     assert tuple(header[:len(sb.CSV_COLUMNS)]) == sb.CSV_COLUMNS
@@ -137,7 +141,8 @@ def test_summary_csv_columns(tmp_path):
 @pytest.fixture(scope="module")
 def recorded():
     """A short run of the shipped controller (native ProxSuite, μ = 0) with the tool moving."""
-    from qpnso.control.controller import Controller, ControllerConfig
+    from qpnso.control.controller import Controller
+    from qpnso.control.config import ControllerConfig
     from qpnso.model.robot import load_robot
     from qpnso.lab.scenarios import load_scenario
 
@@ -147,7 +152,7 @@ def recorded():
     traj = sc.path()
     traj = traj.window(traj.t[0], traj.t[0] + 0.5)
     with sb.QPRecorder(ctrl, "A", keep=lambda k: k >= 200) as rec:
-        sb._track(ctrl, traj, sc.start(robot), 215)
+        sb_record._track(ctrl, traj, sc.start(robot), 215)
     assert "solve" not in vars(ctrl.qp) and ctrl.compiled_tick  # the wrapper is gone afterwards
     return rec.problems
 
@@ -191,11 +196,11 @@ def test_problem_set_round_trip_and_reference(recorded, tmp_path):
 
 
 def test_committed_quick_set_matches_the_controller():
-    path = sb.PROBLEM_DIR / "quick.npz"
+    path = sb_problems.PROBLEM_DIR / "quick.npz"
     if not path.is_file():
         pytest.skip("solvers/problems/quick.npz not in this tree")
     problems, meta = sb.load_problems(path)
-    assert meta["regularization"] == sb.BENCH_REGULARIZATION and len(problems) >= 200
+    assert meta["regularization"] == sb_record.BENCH_REGULARIZATION and len(problems) >= 200
     level2 = [p for p in problems if p.level == 2]
     assert level2 and all(p.ref_v is not None for p in problems)
     worst = max(np.abs(p.decode(p.ref_v) - p.x_controller).max() for p in level2)

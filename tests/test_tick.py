@@ -11,8 +11,10 @@ from hypothesis import strategies as st
 
 import qpnso
 from qpnso.control import tick
-from qpnso.control.controller import Controller, ControllerConfig, Status
-from qpnso.qp.hqp import LevelStatus, _Raw
+from qpnso.control.controller import Controller
+from qpnso.control.config import ControllerConfig, Status
+from qpnso.qp import LevelStatus
+from qpnso.qp.backends import _Raw
 
 DT = 1e-3
 Q0 = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2])
@@ -355,7 +357,7 @@ def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
     """Whatever array kind the user passes (list, strided view, read-only, tuple), the tick's kernels
     run the versions the constructor's dry tick compiled: none is compiled or loaded mid-loop."""
     from qpnso import linalg
-    from qpnso.qp import hqp
+    from qpnso.qp import line
 
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     from qpnso.control import state
@@ -363,7 +365,7 @@ def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
 
     kernels = [tick.qp_tick, tick.qp_tick_answer, tick.qp_command, tick.arm_angle_singular, tick.limits_status, tick.max_abs_difference,
                tick.elbow_advance, tick.elbow_bounds, state.state_views, rom.clipped_bounds, linalg.least_norm_line,
-               hqp.task_line, hqp.least_norm_point, hqp.checked_line_answer]
+               line.task_line, line.least_norm_point, line.checked_line_answer]
     before = [len(k.signatures) for k in kernels]
     ctrl.reset(Q0)
     wide = np.tile(Q0[:, None], (1, 3))  # a column of it is a strided view

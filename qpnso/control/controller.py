@@ -8,7 +8,7 @@
    (:mod:`qpnso.elbow.intervals`, cached while the tool pose is unchanged), the ROM
    clipped to it with the safety margin, the stiffness sigmoid (:mod:`qpnso.elbow.rom`),
    kept across ticks in one elbow-memory array by the kernels of :mod:`qpnso.control.tick`;
-3. the hierarchical QP (:mod:`qpnso.qp.hqp`): level 1 ``J q̇ = v_tool + K_p e_pose``,
+3. the hierarchical QP (:mod:`qpnso.qp`): level 1 ``J q̇ = v_tool + K_p e_pose``,
    level 2 whatever the strategy asks (:mod:`qpnso.control.strategies`), hard joint
    position/velocity bounds on both;
 4. the command: ``dq``, ``q_des = q + dt·dq`` and the torque
@@ -30,29 +30,28 @@ too, to zero velocity, and ``Command.status`` says so.
 
 from __future__ import annotations
 
-import enum
 import math
 import time
-from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import pinocchio as pin
 
 from qpnso.compiled_cache import announce_numba_if_cold
-from qpnso.model.costs import CostModel, CostWeights
+from qpnso.model.costs import CostModel
 from qpnso.errors import ConfigError, InputError, QpnsoError
-from qpnso.qp.hqp import LINE_ANSWER_OK, HierarchicalQP, Level, QPSettings, level_failure, solved_vector
+from qpnso.qp import HierarchicalQP, Level
+from qpnso.qp.backends import solved_vector
+from qpnso.qp.line import LINE_ANSWER_OK
+from qpnso.qp.results import level_failure
 from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.elbow.intervals import continuity_interval
 from qpnso.linalg import dynamically_consistent_projection
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
-from qpnso.elbow.rom import ElbowConfig, stiffness
-from qpnso.settings import SettingError, check, out_of_range
-from qpnso.settings import from_dict as settings_from_dict
+from qpnso.elbow.rom import stiffness
+from qpnso.control.config import Command, ControllerConfig, ElbowState, Status, _status
 from qpnso.control.state import StateEvaluator, TickState
-from qpnso.control.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
-                         FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS, FLAG_QP_FAILED,
-                         FLAG_QP_DEADLINE, FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED, FLAG_TORQUE_SATURATED, LINE_OK, NS,
+from qpnso.control.tick import (FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_QP_FAILED,
+                         FLAG_ROM_EMPTY, LINE_OK, NS,
                          P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, TICK_Q_REFUSED,
                          TICK_STATE_NOT_FINITE, LineTickBuffers, answer_bits, arm_angle_singular, elbow_advance,
                          elbow_bounds, elbow_memory, elbow_parameters, finish_command, interval_failed,
@@ -79,11 +78,6 @@ def _stamped(cmd: "Command", bits: int, t0: float) -> "Command":
     return cmd
 
 
-def _status(bits: int) -> "Status":
-    """The :class:`Status` of a kernel's status bits (``Status.OK``, without a lookup, for none)."""
-    return Status(bits) if bits else Status.OK
-
-
 def _norm(v: np.ndarray) -> float:
     """Euclidean norm of a small vector (cheaper than np.linalg.norm per call)."""
     return math.sqrt(float(v @ v))
@@ -91,169 +85,6 @@ def _norm(v: np.ndarray) -> float:
 
 _WRIST_SIN_MIN = float(np.sin(np.radians(WRIST_CONE_DEG)))
 _ELBOW_BITS = FLAG_INTERVAL_STALE | FLAG_ROM_EMPTY
-_NOT_OK_BITS = FLAG_QP_FAILED | FLAG_ELBOW_DROPPED | FLAG_INTERNAL_ERROR
-STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom")
-
-
-class Status(enum.Flag):
-    """What happened in a tick; several flags may be set at once."""
-
-    OK = 0
-    QP_FAILED = FLAG_QP_FAILED  # a QP level failed: safe fallback command
-    ELBOW_DROPPED = FLAG_ELBOW_DROPPED  # arm angle singular: elbow constraints dropped
-    ELBOW_SLACK = FLAG_ELBOW_SLACK  # elbow bounds not met this tick: moving back
-    ROM_EMPTY = FLAG_ROM_EMPTY  # ROM ∩ interval (with margin) empty: the nearest point kept
-    Q_OUT_OF_LIMITS = FLAG_Q_OUT_OF_LIMITS  # q outside its limits: velocity bounds push it back
-    INTERVAL_STALE = FLAG_INTERVAL_STALE  # the continuity interval could not be updated
-    TOOL_LIMITED = FLAG_TOOL_LIMITED  # level 1 residual not zero (bounds or singularity)
-    COST_UNDEFINED = FLAG_COST_UNDEFINED  # the cost or its gradient is not finite here: no cost step
-    TORQUE_SATURATED = FLAG_TORQUE_SATURATED  # τ clipped to the model's effort limits
-    QP_FALLBACK = FLAG_QP_FALLBACK  # ProxQP did not solve within its iteration budget: DAQP answered
-    ELBOW_OUTSIDE_ROM = FLAG_ELBOW_OUTSIDE_ROM  # the arm angle is outside ROM_t this tick
-    INTERNAL_ERROR = FLAG_INTERNAL_ERROR  # a tick could not be computed: joints stopped, τ = g(q)
-    QP_DEADLINE = FLAG_QP_DEADLINE  # the cascade's time budget was spent: lower levels skipped (with QP_FAILED)
-
-
-@dataclass
-class ControllerConfig:
-    """Every setting of the controller.  Angles in degrees where marked ``_deg``.
-
-    The defaults are the papers' where they give one (ROM, margin, stiffness,
-    DP damping, FOP stiffness, gradient gains), ours otherwise.
-    """
-
-    dt: float = 1e-3  # s, tick length
-    strategy: str = "qp"
-    weights: CostWeights = field(default_factory=CostWeights)
-    potential_speed: float = 0.05  # m/s, s of [M 13]
-    potential_angular_speed: float = 0.5  # rad/s
-    rom_half_width_deg: float = 50.0  # Δns [E 5]
-    safety_margin_deg: float = 10.0  # d_sg [E 10], [E 11]
-    stiffness_min: float = 10.0  # N·m/rad [E 6]
-    stiffness_max: float = 30.0  # N·m/rad
-    stiffness_slope: float | None = None  # α (1/rad) of [E 6]; None: rom.py's default
-    stiffness_inflection_deg: float | None = None  # d of [E 6]; None: rom.py's default
-    pose_gain: float = 200.0  # 1/s, K_p of level 1
-    pose_correction_speed: float = 0.1  # m/s: the largest speed at which the tool point returns to its reference
-    pose_correction_angular_speed: float = 1.0  # rad/s: the same for the tool's orientation
-    cost_gain: float = 10.0  # rad²/s per unit cost: level-2 step -gain·∇c
-    nullspace_speed_max: float = 1.0  # rad/s, saturation of the cost step (as [M 20]) and of the baselines' posture steps
-    cost_filter_time: float = 0.1  # s, low-pass of the cost step (0: none): no velocity steps
-    posture_filter_time: float = 0.1  # s, the same low-pass of the baselines' kinematic posture steps (0: none)
-    elbow_gain: float = 5.0  # 1/s, velocity damper of the elbow bounds
-    joint_limit_gain: float = 20.0  # 1/s, velocity damper of the joint limits (≤ 1/dt)
-    slack_weight: float = 1e6  # weight of the elbow constraints' slack
-    joint_damping: float = 10.0  # N·m·s/rad, null-space damping (DP)
-    posture_stiffness: float = 30.0  # N·m/rad, FOP / elbow-up
-    posture_gain: float = 2.0  # 1/s, kinematic rate towards a posture
-    fixed_posture: tuple[float, ...] | None = None  # rad; None: the reset posture
-    gradient_kp: float = 50.0  # [M 20]
-    gradient_kd: float = 10.0  # [M 20], [M 22]
-    gradient_omega_max: float = 10.0  # rad/s [M 20]
-    elbow_up_angle_deg: float = 0.0  # arm angle the elbow-up strategy holds
-    interval_period: int = 10  # ticks between interval updates while the tool moves
-    q_limit_tolerance_deg: float = 2.0  # deg (>= 0): how far outside its limits a measured joint
-    # may be and still be brought back (Status.Q_OUT_OF_LIMITS); beyond it the tick raises
-    recovery_speed: float = 0.2  # rad/s (> 0): the largest speed bringing a joint back inside its limits
-    dq_tolerance_factor: float = 5.0  # (>= 1): a measured dq beyond this multiple of the velocity limit raises
-    # (a hand can push a torque-controlled arm past its rated speed; deg/s for rad/s is 57×)
-    qp_backend: str = "proxsuite"
-    qp_settings: QPSettings = field(default_factory=QPSettings)
-    solver_time_budget: float | None = None  # s of the control thread's CPU time for the general cascade: a
-    # lower level that would overrun it does not start (Status.QP_DEADLINE, tool held); None: no budget, answers
-    # independent of timing (HierarchicalQP.solve's time_budget; README "Real-time use" gives the measurement)
-    compile: str | None = None  # CasADi evaluation: background|sync|off (codegen.py)
-    compiled_tick: bool = True  # qp strategy: the tick as one Numba kernel when the line fast path applies (tick.py)
-
-    def __post_init__(self) -> None:
-        """Types first (:func:`qpnso.settings.check`: ``weights``/``qp_settings`` may be dicts),
-        then ranges; a :class:`qpnso.settings.SettingError` names the key, value and range."""
-        check(self)
-        if self.strategy not in STRATEGIES:
-            raise SettingError(type(self).__name__, "strategy",
-                               f"unknown strategy {self.strategy!r}; choose one of {', '.join(STRATEGIES)}")
-        if not 0 < self.dt <= 0.1:
-            raise out_of_range(self, "dt", "must be in (0, 0.1] s")
-        positive = ("pose_gain", "cost_gain", "nullspace_speed_max", "elbow_gain", "joint_limit_gain",
-                    "slack_weight", "posture_gain", "gradient_kd", "gradient_omega_max", "rom_half_width_deg",
-                    "recovery_speed", "pose_correction_speed", "pose_correction_angular_speed")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise out_of_range(self, name, "must be > 0")
-        if self.joint_limit_gain * self.dt > 1.0:
-            raise out_of_range(self, "joint_limit_gain",
-                               f"must be <= 1/dt = {1 / self.dt:g} 1/s (else a joint could cross its limit)")
-        for name in ("cost_filter_time", "posture_filter_time", "safety_margin_deg", "q_limit_tolerance_deg"):
-            if getattr(self, name) < 0:
-                raise out_of_range(self, name, "must be >= 0")
-        if self.interval_period < 1:
-            raise out_of_range(self, "interval_period", "must be >= 1 tick")
-        if self.dq_tolerance_factor < 1:
-            raise out_of_range(self, "dq_tolerance_factor", "must be >= 1")
-        if self.solver_time_budget is not None and not self.solver_time_budget > 0:
-            raise out_of_range(self, "solver_time_budget", "must be > 0 s or None")
-
-    @classmethod
-    def from_dict(cls, values: dict, where: str = "") -> "ControllerConfig":
-        """Build from plain data (a TOML table; ``weights``/``qp_settings`` as tables): an unknown
-        key is named with the valid ones, a wrong type or range with key and value; errors name
-        ``where`` (e.g. the file; default: the class)."""
-        return settings_from_dict(cls, values, where)
-
-    def to_dict(self) -> dict:
-        """Plain data (nested settings as dicts); ``from_dict(to_dict())`` gives an equal config."""
-        return asdict(self)
-
-    def elbow(self) -> ElbowConfig:
-        """The ROM/stiffness settings as :class:`qpnso.elbow.rom.ElbowConfig`."""
-        d = None if self.stiffness_inflection_deg is None else np.radians(self.stiffness_inflection_deg)
-        return ElbowConfig(
-            half_width_deg=self.rom_half_width_deg,
-            safety_margin_deg=self.safety_margin_deg,
-            stiffness_min=self.stiffness_min,
-            stiffness_max=self.stiffness_max,
-            alpha=self.stiffness_slope,
-            d=d,
-        )
-
-
-@dataclass
-class Command:
-    """The controller's output for one tick (rad, rad/s, N·m, s; world frame)."""
-
-    dq: np.ndarray  # joint velocity command, rad/s
-    q_des: np.ndarray  # joint set-point q + dt·dq, rad
-    tau: np.ndarray  # torque command: g(q) + Nᵀ τ_null, N·m
-    stiffness: float  # null-space stiffness the strategy applies (K(ns) [E 6] for qp/rom), N·m/rad
-    arm_angle: float  # ns, rad, unwrapped along the run
-    rom: tuple[float, float]  # ROM_t [E 10], [E 11], rad (same unwrapping)
-    interval: tuple[float, float]  # continuity interval [E 9], rad
-    cost: float  # weighted cost [M 18] at q
-    status: Status
-    solve_time: float  # s, QP time of this tick
-    tick_time: float  # s, the whole step()
-    tool_error: tuple[float, float]  # (m, rad) pose error before this tick's correction
-    message: str = ""
-
-    @property
-    def ok(self) -> bool:
-        return not (self.status & _NOT_OK)
-
-
-_NOT_OK = Status(_NOT_OK_BITS)
-
-
-@dataclass
-class ElbowState:
-    """The elbow's quantities at one tick (rad, unwrapped along the run)."""
-
-    ns: float
-    rom: tuple[float, float]
-    interval: tuple[float, float]
-    stiffness: float
-    status: Status
-    dropped: bool = False  # arm angle singular: no elbow constraint this tick
-
 
 class Controller:
     """Hierarchical-QP null-space controller of a 7-DOF arm (docs/method.md §7)."""
@@ -310,7 +141,7 @@ class Controller:
 
     def _warm_up(self) -> None:
         """Dry ticks at the robot's sample configuration, then forgotten: the Numba kernels of
-        :mod:`qpnso.linalg`, :mod:`qpnso.qp.hqp` and :mod:`qpnso.control.tick` compile (seconds, once per machine, then
+        :mod:`qpnso.linalg`, :mod:`qpnso.qp` and :mod:`qpnso.control.tick` compile (seconds, once per machine, then
         cached on disk) or load here, for the compiled tick and the general path alike, never in a
         control tick."""
         announce_numba_if_cold()  # one line on stderr when the kernels compile now (empty cache)

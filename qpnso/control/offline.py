@@ -16,7 +16,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpnso.control.controller import Controller, ControllerConfig
+from qpnso.control.controller import Controller
+
+from qpnso.control.config import ControllerConfig
 from qpnso.errors import ConfigError, InputError, QpnsoError, UnreachableError
 from qpnso.model.robot import Robot
 from qpnso.control.trajectory import Trajectory
@@ -163,7 +165,7 @@ def initial_configuration(robot: Robot, pose: pin.SE3, arm_angle: float = 0.0,
     """A configuration (rad) reaching ``pose`` with the arm angle closest to ``arm_angle``
     (0 = elbow up), joints 2° inside their limits, preferring those at least
     ``interval_margin_deg`` from the ends of their continuity interval (S-R-S arms)."""
-    from qpnso.elbow.arm_angle import Branch, ik
+    from qpnso.elbow.srs import Branch, ik
     from qpnso.elbow.intervals import continuity_interval
 
     candidates = []
@@ -242,7 +244,7 @@ class Recorder:
 
     def result(self) -> RunResult:
         """The arrays and their summary (docs/method.md §9 metrics, status counts, felt mass and friction)."""
-        from qpnso.control.controller import Status
+        from qpnso.control.config import Status
         from qpnso.lab.metrics import summarize_run
 
         arrays = {k: np.asarray(v) for k, v in self.rec.items()}

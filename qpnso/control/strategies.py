@@ -19,11 +19,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from qpnso.errors import ConfigError, QpnsoError
-from qpnso.qp.hqp import Level
+from qpnso.qp import Level
 from qpnso.control.tick import cost_step, elbow_row_bounds, low_pass, qp_nullspace_torque
 
 if TYPE_CHECKING:
-    from qpnso.control.controller import Controller, ControllerConfig, ElbowState
+    from qpnso.control.controller import Controller
+    from qpnso.control.config import ControllerConfig, ElbowState
     from qpnso.control.state import TickState
 
 
@@ -189,7 +190,7 @@ class RomModulation(Strategy):
         return self._ik_step(state, elbow, target)
 
     def _ik_step(self, state, elbow, target: float) -> np.ndarray:
-        from qpnso.elbow.arm_angle import branch, ik
+        from qpnso.elbow.srs import branch, ik
 
         import pinocchio as pin
 

@@ -12,7 +12,7 @@ kernel here, and the general Python path calls these same kernels one by one:
   continuity interval's age, ROM_t and the stiffness K(ns), on the elbow memory (:func:`elbow_memory`).
 
 For the ``qp`` strategy with the hierarchical QP's line fast path
-(:mod:`qpnso.qp.hqp`, module doc), :func:`qp_tick` composes them with the line
+(:mod:`qpnso.qp.line`, module doc), :func:`qp_tick` composes them with the line
 kernels into one call, from the stacked CasADi state (read in place) to the
 level-2 line QP, and :func:`qp_tick_answer` judges the QP's answer and forms
 the command and torque.  Python then only calls CasADi and ProxSuite (and the
@@ -28,8 +28,8 @@ import math
 import numpy as np
 from numba import njit
 
-from qpnso.qp.hqp import (LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, qp_data_finite,
-                       task_line)
+from qpnso.qp.backends import qp_data_finite
+from qpnso.qp.line import LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, task_line
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, matvec, nullspace_part
 from qpnso.elbow.rom import clipped_bounds, sigmoid_stiffness
 from qpnso.control.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state, state_views
@@ -39,7 +39,7 @@ LOG3_MAX_ANGLE = math.pi - 1e-3
 its axis is ill-conditioned; the caller then uses ``pinocchio.log3``."""
 
 LINE_NO_POSE = 3
-"""A code of :func:`qp_tick` besides those of :func:`qpnso.qp.hqp.task_line`: the rotation error is
+"""A code of :func:`qp_tick` besides those of :func:`qpnso.qp.line.task_line`: the rotation error is
 too close to π for the kernel's log₃."""
 TICK_NOT_FINITE = 4
 """A code of :func:`qp_tick`: ``q`` has a NaN or an infinite entry; nothing was done (the caller raises)."""
@@ -58,7 +58,7 @@ TICK_NEED_INTERVAL = 6
 """A code of :func:`qp_tick`: the elbow memory advanced and the continuity interval must be recomputed
 (:func:`store_interval`), then :func:`qp_tick` called again with ``advance`` False."""
 
-# Status bits (qpnso.control.controller.Status has the same values)
+# Status bits (qpnso.control.config.Status names them)
 FLAG_QP_FAILED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_ROM_EMPTY = 1, 2, 4, 8
 FLAG_Q_OUT_OF_LIMITS, FLAG_INTERVAL_STALE, FLAG_TOOL_LIMITED = 16, 32, 64
 FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = COST_UNDEFINED_BIT, 256, 512, 1024
@@ -342,7 +342,7 @@ class LineTickBuffers:
     """The arrays :func:`qp_tick` writes, allocated once per controller (nothing is boxed
     per tick): ``step`` the cost step's filter state (rad/s, read and advanced), ``line`` (3, n)
     the rows ``x0``, ``d``, ``x1`` (rad/s), and the level-2 line QP ``H, g, C, l, u, box_l, box_u``
-    (``v = [t; σ]``, one soft elbow row) in the shapes of :func:`qpnso.qp.hqp.line_qp_arrays`; and,
+    (``v = [t; σ]``, one soft elbow row) in the shapes of :func:`qpnso.qp.line.line_qp_arrays`; and,
     read only, ``identity`` the Hessian of level 2's ``½‖q̇‖²``."""
 
     def __init__(self, step: np.ndarray) -> None:
@@ -392,12 +392,12 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`), the arm angle's singularity
     (:data:`TICK_ELBOW_DROPPED`), the elbow (:func:`elbow_advance`, :func:`elbow_bounds`), level 1's
     error (:func:`pose_error`; :data:`LINE_NO_POSE` near π), its line of exact solutions within the
-    joint bounds (:func:`qpnso.qp.hqp.task_line`) and least-norm point ``x1`` (the safe fallback), the
-    filtered cost step and the elbow row, and the level-2 line QP (:func:`qpnso.qp.hqp.line_qp_arrays`)
+    joint bounds (:func:`qpnso.qp.line.task_line`) and least-norm point ``x1`` (the safe fallback), the
+    filtered cost step and the elbow row, and the level-2 line QP (:func:`qpnso.qp.line.line_qp_arrays`)
     written into the buffers of :class:`LineTickBuffers` (``step`` read and advanced).  Returns
     ``(code, ns, rom_lo, rom_hi, iv_lo, iv_hi, K, ‖e_p‖, ‖e_R‖, ‖J x1 − b1‖, cost, status bits)``;
-    ``code`` is :data:`qpnso.qp.hqp.LINE_OK` when the line QP is ready; :data:`LINE_NO_POSE`,
-    :data:`qpnso.qp.hqp.LINE_SINGULAR` or :data:`qpnso.qp.hqp.LINE_CUT` send the tick to the general path,
+    ``code`` is :data:`qpnso.qp.line.LINE_OK` when the line QP is ready; :data:`LINE_NO_POSE`,
+    :data:`qpnso.qp.line.LINE_SINGULAR` or :data:`qpnso.qp.line.LINE_CUT` send the tick to the general path,
     the elbow advanced but no buffer written."""
     nothing = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
     limit = limits_status(q, limits[0], limits[1])
@@ -450,10 +450,10 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
 def qp_tick_answer(v, line, box_l, box_u, C, l, u, feasibility_tol, flat, offsets, q, dq_meas, stiffness, dt,
                    damping, residual, bits, tau_limit, dq_max, ns, rom_lo, rom_hi):  # type: ignore[no-untyped-def]
     """The compiled tick after its level-2 QP: the answer ``v = [t; σ]`` judged
-    (:func:`qpnso.qp.hqp.checked_line_answer`), the command, and every tick's last step
+    (:func:`qpnso.qp.line.checked_line_answer`), the command, and every tick's last step
     (:func:`finish_command`, g(q) from ``flat``).  Returns ``(code, dq rad/s, q_des rad, τ N·m, status
     bits)`` (``bits`` plus :func:`answer_bits` and the finishing bits); ``code`` ≠
-    :data:`qpnso.qp.hqp.LINE_ANSWER_OK`: the answer is refused (the caller falls back), the arrays are then
+    :data:`qpnso.qp.line.LINE_ANSWER_OK`: the answer is refused (the caller falls back), the arrays are then
     meaningless."""
     code, x, _, slack = checked_line_answer(v, line[1], line[0], box_l, box_u, C, l, u, 1, feasibility_tol)
     if code != LINE_ANSWER_OK:

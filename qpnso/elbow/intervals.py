@@ -1,7 +1,7 @@
 """Joint-limit continuity intervals of the arm angle (docs/method.md §5, [E 7]–[E 9]).
 
 With the tool pose and the branch held, each joint is a function ``θ_k(ns)``
-(:class:`qpnso.elbow.arm_angle.SelfMotion`).  ``Ψ_k`` is the set of arm angles where joint
+(:class:`qpnso.elbow.srs.SelfMotion`).  ``Ψ_k`` is the set of arm angles where joint
 ``k`` is within its limits [E 7], ``Ψ = ∩ Ψ_k`` [E 8], and the continuity
 interval is the arc of ``Ψ`` that holds the current arm angle [E 9].
 
@@ -36,20 +36,21 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.elbow.arm_angle import (
+    _checked,
+    _status_after_fk,
+    arm_angle,
+    arm_angle_gradient,
+    arm_angle_status,
+)
+from qpnso.elbow.srs import (
     SelfMotion,
     _CONST,
     _KIND,
     _TAN,
     _branch_of,
-    _checked,
     _self_motion_rows,
-    _status_after_fk,
     srs_geometry,
-    arm_angle,
-    arm_angle_gradient,
-    arm_angle_status,
     as_pose,
-    branch,
     is_srs,
     self_motion,
 )

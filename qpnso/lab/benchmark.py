@@ -131,7 +131,8 @@ def interleaved(runs: dict[str, Callable[[int], np.ndarray]], n: int, chunk: int
 def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None = None) -> list[Timing]:
     """``Controller.step`` per strategy, tool held, from the sample configuration, with Pink's
     ``solve_ik`` for reference when installed; the rows are timed in turns (:func:`interleaved`)."""
-    from qpnso.control.controller import STRATEGIES, Controller, ControllerConfig
+    from qpnso.control.controller import Controller
+    from qpnso.control.config import STRATEGIES, ControllerConfig
 
     strategies = strategies or STRATEGIES
     q0 = robot.sample_configuration()

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from qpnso.elbow.arm_angle import arm_angle, branch, self_motion
+from qpnso.elbow.arm_angle import arm_angle
+from qpnso.elbow.srs import branch, self_motion
 from qpnso.errors import InputError
 from qpnso.elbow.intervals import continuity_interval, feasible_intervals
 from qpnso.model.robot import Robot

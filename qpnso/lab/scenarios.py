@@ -56,7 +56,7 @@ class Scenario:
 
     def start(self, robot: Robot) -> np.ndarray:
         """Start configuration (rad): closed-form IK at ``ns0_deg`` on ``branch``."""
-        from qpnso.elbow.arm_angle import Branch, ik
+        from qpnso.elbow.srs import Branch, ik
 
         return robot.check_q(ik(robot, self.tool_pose(), np.radians(self.ns0_deg), Branch(*self.branch)), "start")
 
@@ -112,7 +112,7 @@ class PathTable:
 @dataclass(frozen=True)
 class ScenarioFile:
     """A scenario file's tables, type-checked by :func:`qpnso.settings.from_dict`
-    (``controller`` holds :class:`qpnso.control.controller.ControllerConfig` settings)."""
+    (``controller`` holds :class:`qpnso.control.config.ControllerConfig` settings)."""
 
     scenario: ScenarioTable
     start: StartTable
@@ -141,7 +141,7 @@ def scenario_path(name_or_path: str | Path) -> Path:
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Read a scenario file (tables :class:`ScenarioFile`); a missing, unknown or wrongly
     typed key, or a value out of range, is a :class:`ConfigError` naming the file and the key."""
-    from qpnso.control.controller import ControllerConfig
+    from qpnso.control.config import ControllerConfig
 
     p = scenario_path(name_or_path)
     try:
@@ -175,7 +175,8 @@ def simulate_scenario(name: str, strategy: str | None = None, duration_scale: fl
     Controller settings: the scenario file's ``[controller]``, then ``settings``
     (e.g. a user's config file and CLI flags), then ``strategy`` if given.
     """
-    from qpnso.control.controller import Controller, ControllerConfig
+    from qpnso.control.controller import Controller
+    from qpnso.control.config import ControllerConfig
     from qpnso.lab.simulation import simulate
 
     sc = load_scenario(name)

@@ -1,0 +1,279 @@
+"""The sub-commands ``info``, ``intervals``, ``trajectory``, ``solve``, ``simulate``, ``plot``, ``compare``
+and ``study``: each a function ``cmd_<name>(args) -> int``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from qpnso.cli.common import (
+    NO_MATPLOTLIB,
+    controller_overrides,
+    have_matplotlib,
+    load_cli_robot,
+    parse_vector,
+    positive,
+    print_notes,
+    print_slow_ticks,
+    print_summary,
+    progress_bar,
+    robot_q,
+    write_json,
+)
+
+
+# ---------------------------------------------------------------------- info
+def cmd_info(args: argparse.Namespace) -> int:
+    """Print the model: joints, limits, masses, tool frame, costs at a sample q."""
+    from qpnso.model.costs import TERMS, CostModel
+
+    robot = load_cli_robot(args)
+    q = robot_q(args, robot)
+    print(f"robot {robot.name}  ({robot.source})  nq = {robot.nq}")
+    print(f"{'joint':<10}{'q_min°':>9}{'q_max°':>9}{'dq_max°/s':>11}{'tau_max N·m':>13}"
+          f"{'friction N·m':>14}{'beta s/rad':>12}{'link kg':>9}")
+    for k, name in enumerate(robot.joint_names):
+        mass = robot.model.inertias[k + 1].mass
+        print(f"{name:<10}{np.degrees(robot.q_min[k]):>9.1f}{np.degrees(robot.q_max[k]):>9.1f}"
+              f"{np.degrees(robot.dq_max[k]):>11.1f}{robot.tau_limit[k]:>13.1f}"
+              f"{robot.friction.tau_max[k]:>14.2f}{robot.friction.beta[k]:>12.1f}{mass:>9.3f}")
+    moving = sum(robot.model.inertias[j].mass for j in range(1, robot.model.njoints))
+    base = robot.model.inertias[0].mass
+    print(f"moving mass {moving:.3f} kg (+ {base:.3f} kg fixed base)")
+    tool = robot.model.frames[robot.tool_frame_id]
+    parent = robot.model.frames[tool.parentFrame].name
+    pose = robot.tool_pose(q)
+    print(f"tool frame on {parent!r}, offset {np.round(tool.placement.translation, 4).tolist()} m from joint "
+          f"{robot.model.names[tool.parentJoint]!r}")
+    print(f"at q = {np.round(np.degrees(q), 2).tolist()} deg:")
+    print(f"  tool position (world) {np.round(pose.translation, 4).tolist()} m")
+    cost = CostModel(robot, compile="off")
+    terms = cost.terms(q)
+    units = {"mass": "1/kg³", "inertia": "1/(kg·m²)³", "friction_force": "N²", "friction_torque": "N²·m²"}
+    for t in TERMS:
+        print(f"  {t:<16} {terms[t]: .6g} {units[t]:<12} (scale {cost.scales[t]:.4g})")
+    print(f"  largest principal mass {cost.principal_mass(q):.3f} kg, "
+          f"friction force magnitude {cost.friction_force_magnitude(q):.3f} N "
+          f"(potential speed {cost.potential_speed} m/s)")
+    print(f"  weighted cost {cost.value(q):.6g} with weights {cost.describe()['weights']}")
+    return 0
+
+
+# ----------------------------------------------------------------- intervals
+def cmd_intervals(args: argparse.Namespace) -> int:
+    """Plot every joint versus the arm angle for the tool pose of q (PNG)."""
+    from qpnso.elbow.intervals import continuity_interval
+    from qpnso.lab.plots import plot_intervals
+    from qpnso.elbow.rom import ElbowConfig
+
+    if not have_matplotlib():
+        from qpnso.errors import InputError
+
+        raise InputError(f"qpnso intervals draws a figure and needs {NO_MATPLOTLIB}")
+    robot = load_cli_robot(args, redundant=True)
+    q = robot_q(args, robot)
+    rom = ElbowConfig(half_width_deg=args.rom_half_width_deg, safety_margin_deg=args.safety_margin_deg)
+    iv = continuity_interval(robot, q)
+    path = plot_intervals(robot, q, rom=rom, out=args.out)
+    span = "full circle" if iv.full_circle else f"[{np.degrees(iv.lo):.2f}, {np.degrees(iv.hi):.2f}] deg"
+    print(f"continuity interval {span} ({iv.method}); figure written to {path}")
+    return 0
+
+
+# ---------------------------------------------------------------- trajectory
+def parse_targets(text: str) -> np.ndarray:
+    """``x,y,z;x,y,z;...`` in metres."""
+    rows = [parse_vector(part, 3, "--targets point") for part in text.split(";") if part.strip()]
+    if len(rows) < 2:
+        raise argparse.ArgumentTypeError("--targets needs at least two points x,y,z;x,y,z (m)")
+    return np.array(rows)
+
+
+def cmd_trajectory(args: argparse.Namespace) -> int:
+    """Generate a tool trajectory CSV (t,x,y,z,qx,qy,qz,qw)."""
+    import pinocchio as pin
+
+    from qpnso.control import trajectory as tr
+    center = parse_vector(args.center, 3, "--center")
+    rot = pin.rpy.rpyToMatrix(*np.radians(parse_vector(args.rpy_deg, 3, "--rpy-deg")))
+    pose = pin.SE3(rot, center)
+    if args.kind == "guidance":
+        traj = tr.guidance_path(pose, size=args.size, speed=args.speed, dt=args.dt)
+    elif args.kind == "point-to-point":
+        targets = parse_targets(args.targets) if args.targets else center + np.array(
+            [[0, 0, 0], [0.08, 0, 0], [0.08, 0.08, 0], [0, 0.08, 0], [-0.08, 0, 0], [0, -0.08, 0]])
+        traj = tr.point_to_point(targets, peak_speed=args.speed, orientation=rot, dt=args.dt)
+    else:
+        traj = tr.hold(pose, args.duration, dt=args.dt)
+    tr.write_csv(traj, args.out)
+    print(f"{args.kind}: {len(traj)} samples, {traj.duration:.2f} s, written to {args.out}")
+    return 0
+
+
+# --------------------------------------------------------------------- solve
+def cmd_solve(args: argparse.Namespace) -> int:
+    """Offline solve of a tool trajectory, tick by tick: the main job.
+
+    Exit status 0 when the tool stayed within the tolerance of the trajectory,
+    1 when it did not (the result and summary are written all the same), 2 for
+    bad input."""
+    from qpnso.control.offline import load_config, solve_trajectory
+    from qpnso.control.trajectory import read_csv
+
+    tol_m = positive(args.tool_tolerance_mm, "--tool-tolerance-mm") / 1000.0
+    tol_rad = np.radians(positive(args.tool_tolerance_deg, "--tool-tolerance-deg"))
+    robot = load_cli_robot(args, redundant=True)
+    traj = read_csv(args.trajectory)
+    cfg = load_config(args.config, controller_overrides(args))
+    q0 = None
+    if args.q0 is not None:
+        q0 = robot.check_q(parse_vector(args.q0, robot.nq, "--q0"), "--q0")
+    result = solve_trajectory(robot, traj, q0=q0, config=cfg, progress=progress_bar(not args.quiet, "solve"),
+                              tool_tolerance_m=tol_m, tool_tolerance_rad=float(tol_rad))
+    result.save(args.out)
+    if args.summary:
+        write_json(args.summary, {"robot": robot.name, "strategy": cfg.strategy, "trajectory": str(args.trajectory),
+                                  **result.summary})
+    print_summary(result.summary, f"{robot.name}, strategy {cfg.strategy}, {args.trajectory} -> {args.out}")
+    print_notes(result.messages)
+    print_slow_ticks(result.summary, cfg.dt)
+    if not result.ok:
+        sys.stdout.flush()
+        written = args.out + (f" and {args.summary}" if args.summary else "")
+        print(f"qpnso: failed: {args.trajectory}: {result.failure}; results written to {written}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Hands-on guidance simulation of a scenario with one strategy."""
+    from pathlib import Path
+
+    from qpnso.lab.plots import plot_run
+    from qpnso.lab.scenarios import load_scenario, simulate_scenario
+    from qpnso.control.offline import config_values
+
+    sc = load_scenario(args.scenario)
+    settings = config_values(args.config, controller_overrides(args))
+    plot = not args.no_plot and have_matplotlib()  # checked first: say so before a long run, not after
+    if not args.no_plot and not plot:
+        print(f"qpnso: note: {NO_MATPLOTLIB}: run.png will be skipped (result.npz and summary.json are written)",
+              file=sys.stderr)
+    result = simulate_scenario(args.scenario, None, args.duration_scale,
+                               progress_bar(not args.quiet, "simulate"), settings)
+    strategy = settings.get("strategy", sc.controller.get("strategy", "qp"))
+    out = Path(args.out)
+    result.save(out / "result.npz")
+    write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": strategy, **result.summary})
+    if plot:
+        plot_run(result.arrays, out / "run.png", title=f"scenario {sc.name}, strategy {strategy}")
+    print_summary(result.summary, f"scenario {sc.name} ({sc.description}), strategy {strategy} -> {out}")
+    print_slow_ticks(result.summary, float(settings.get("dt", sc.controller.get("dt", 1e-3))))
+    if not args.no_plot and not plot:
+        print(f"qpnso: note: figure {out / 'run.png'} skipped: {NO_MATPLOTLIB}", file=sys.stderr)
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Plot a result.npz (arm angle, ROM_t, bounds, stiffness, felt mass/friction, tool path)."""
+    import zipfile
+    from pathlib import Path
+
+    from qpnso.errors import InputError
+    from qpnso.lab.plots import plot_run
+
+    path = Path(args.result)
+    if not path.is_file():
+        raise InputError(f"result file not found: {path}")
+    not_result = f"{path} is not a qpnso result .npz (the --out file of qpnso solve or simulate)"
+    if not zipfile.is_zipfile(path):  # a CSV, a .npy, ...: np.load would talk about pickled data
+        raise InputError(f"{not_result}: it is not a NumPy .npz archive")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{not_result}: cannot read it ({exc})") from None
+    missing = [k for k in ("t", "ns", "rom_lo", "rom_hi", "interval_lo", "interval_hi", "stiffness", "mass",
+                           "friction_force", "tool_position") if k not in arrays]
+    if missing:
+        raise InputError(f"{not_result}: it lacks {missing}")
+    if not have_matplotlib():
+        raise InputError(f"qpnso plot needs {NO_MATPLOTLIB}")
+    print(f"figure written to {plot_run(arrays, args.out, title=str(args.result))}")
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Several strategies on one scenario: one table (Markdown) and one figure."""
+    from pathlib import Path
+
+    from qpnso.control.config import STRATEGIES
+    from qpnso.errors import ConfigError
+    from qpnso.lab.plots import plot_comparison
+    from qpnso.lab.scenarios import load_scenario, simulate_scenario
+
+    strategies = [x.strip() for x in args.strategies.split(",") if x.strip()]
+    unknown = [x for x in strategies if x not in STRATEGIES]
+    if unknown:
+        raise ConfigError(f"unknown strategy {unknown}; choose from {STRATEGIES}")
+    sc = load_scenario(args.scenario)
+    plot = have_matplotlib()
+    if not plot:
+        print(f"qpnso: note: {NO_MATPLOTLIB}: comparison.png will be skipped", file=sys.stderr)
+    runs, rows = {}, []
+    for name in strategies:
+        result = simulate_scenario(args.scenario, name, args.duration_scale, progress_bar(not args.quiet, name))
+        runs[name] = result.arrays
+        rows.append((name, result.summary))
+    out = Path(args.out)
+    table = comparison_table(rows, sc)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "comparison.md").write_text(table + "\n")
+    if plot:
+        plot_comparison(runs, out / "comparison.png", title=f"scenario {sc.name}: {sc.description}")
+    print(table)
+    if not plot:
+        print(f"qpnso: note: figure {out / 'comparison.png'} skipped: {NO_MATPLOTLIB}", file=sys.stderr)
+    return 0
+
+
+def comparison_table(rows: list, sc) -> str:  # type: ignore[no-untyped-def]
+    margin = sc.controller.get("safety_margin_deg", 10.0)
+    lines = [f"scenario {sc.name} ({sc.description}), safety margin {margin:g} deg", "",
+             "| strategy | Δ elbow mobility (deg) | Δc proximity (deg) | Δc ≥ margin | S smoothness | "
+             "tool error max (mm) | work per metre (N) | tick median (µs) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, m in rows:
+        lines.append(
+            f"| {name} | {m.get('elbow_mobility_deg', float('nan')):.1f} | "
+            f"{m.get('constraint_proximity_deg', float('nan')):.1f} | "
+            f"{'yes' if m.get('constraint_proximity_deg', -1) >= margin else 'no'} | "
+            f"{m.get('smoothness', float('nan')):.0f} | {1000 * m.get('tool_position_error_max_m', float('nan')):.2f} | "
+            f"{m.get('user_work_per_metre_N', float('nan')):.2f} | {m.get('tick_time_median_us', float('nan')):.0f} |")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------- study
+def cmd_study(args: argparse.Namespace) -> int:
+    """One of the papers' studies, on every core or a Dask cluster."""
+    from pathlib import Path
+
+    from qpnso.lab.studies import run_study
+
+    options = {}
+    for item in args.option or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise argparse.ArgumentTypeError(f"--option takes key=value, got {item!r}")
+        options[key.strip()] = value.strip()
+    summary = run_study(args.name, Path(args.out), n=args.n, seed=args.seed, workers=args.workers,
+                        scheduler=args.scheduler, progress=not args.quiet, options=options or None)
+    print_summary({k: v for k, v in summary.items() if not isinstance(v, (dict, list))},
+                  f"study {args.name} -> {args.out}")
+    for key, value in summary.items():
+        if isinstance(value, dict):
+            print(f"  {key}: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                            for k, v in value.items()))
+    return 0

@@ -1,0 +1,207 @@
+"""One episode: a kinematic closed loop (``q ← q + dt·cmd.dq``) of one strategy from one random start,
+through its phases, with bad-input bursts interleaved; every valid tick is stepped, checked, and fed to the
+drift and recovery bookkeeping.  :class:`SolverClock` measures the solver's own CPU time, so a tick that
+was slow only because the machine preempted it is told apart from a slow solve.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+from typing import TYPE_CHECKING, Callable, Iterator
+
+import numpy as np
+
+from qpnso.control.config import Command, Status
+from qpnso.errors import QpnsoError
+from qpnso.lab.fuzz.checker import HoldMonitor, Recovery, end_recovery, update_recovery
+from qpnso.lab.fuzz.config import Where
+from qpnso.lab.fuzz.phases import Phase, advance_reference, plan_phases, twist_at
+from qpnso.lab.fuzz.probes import _outside, limit_distance, make_probe, send_probe
+from qpnso.lab.fuzz.report import record_exception
+from qpnso.lab.fuzz.starts import random_start, start_is_singular
+
+if TYPE_CHECKING:  # the runner imports the episode
+    from qpnso.lab.fuzz.runner import Fuzzer
+
+
+class SolverClock:
+    """The CPU time (``time.thread_time``, s) a controller spends in ``HierarchicalQP.solve`` (the general
+    path's solver time is that call's wall time), measured by wrapping the controller's solver object."""
+
+    def __init__(self, qp: object) -> None:
+        self.seconds, self.calls = 0.0, 0
+        solve = qp.solve  # type: ignore[attr-defined]
+
+        def timed(*args: object, **kwargs: object) -> object:
+            start = time.thread_time()
+            try:
+                return solve(*args, **kwargs)
+            finally:
+                self.seconds += time.thread_time() - start
+                self.calls += 1
+
+        qp.solve = timed  # type: ignore[attr-defined]
+
+    def take(self, tick_cpu: float) -> float:
+        """The solver's CPU time since the last call: the wrapped solve's if it ran, else ``tick_cpu`` (the
+        compiled tick's solver time spans most of its step: the whole step's CPU time bounds it)."""
+        seconds = self.seconds if self.calls else tick_cpu
+        self.seconds, self.calls = 0.0, 0
+        return seconds
+
+
+class Episode:
+    """One closed loop of one strategy from one random start (see the package doc, :mod:`qpnso.lab.fuzz`)."""
+
+    def __init__(self, fuzzer: "Fuzzer", index: int, ticks: int) -> None:
+        cfg = fuzzer.config
+        self.fuzzer, self.config, self.checker, self.report = fuzzer, cfg, fuzzer.checker, fuzzer.report
+        self.rng = np.random.default_rng([cfg.seed, index])
+        self.strategy = cfg.strategies[index % len(cfg.strategies)]
+        self.ctrl = fuzzer.controller(self.strategy)
+        self.clock = fuzzer.clocks[self.strategy]
+        self.dt = self.ctrl.config.dt
+        kind, self.q = random_start(self.rng, self.checker)
+        singular = start_is_singular(self.checker, self.q)
+        self.where = Where(cfg.seed, index, self.strategy, kind + (" (singular)" if singular else ""))
+        self.check_drift = not singular
+        self.ticks = ticks
+        self.phases = plan_phases(self.rng, cfg, ticks)
+        self.dq_none = self.rng.random() < cfg.p_dq_none
+        self.dq = np.zeros(self.q.size)
+        self.reference = self.home = self.checker.tool_pose(self.q)
+        self.hold = HoldMonitor()
+        self.pending: Recovery | None = None
+        self.rom_out: float | None = None
+        self.previous: Status | None = None
+        self.recovered = False  # the last valid tick was OK with the tool on its reference
+        self.pull_from_ok = False
+        self.failures_in_row = 0
+        self.tick = 0
+        self.report.start_kinds[self.where.start] = self.report.start_kinds.get(self.where.start, 0) + 1
+
+    def run(self, progress: Callable[[], None], deadline: float = math.inf) -> None:
+        """All the episode's ticks; fewer when the controller fails 20 ticks in a row (refused, raised or
+        non-finite: the rest would repeat it), after ``episode_seconds`` (seconds-long ticks) or at the run's
+        ``deadline`` (``time.perf_counter()``)."""
+        if not self._reset():
+            return
+        cut = time.perf_counter() + self.config.episode_seconds
+        for phase, k in self._schedule():
+            if self.failures_in_row >= 20 or time.perf_counter() > deadline:
+                break
+            if time.perf_counter() > cut:
+                self.report.episodes_cut += 1
+                break
+            self._valid_tick(phase, k)
+            progress()
+        end_recovery(self.pending, self.tick, self.report)
+
+    def _reset(self) -> bool:
+        try:
+            self.ctrl.reset(self.q)
+        except Exception as exc:  # noqa: BLE001 - a start within the limits must be accepted
+            if isinstance(exc, QpnsoError):
+                self.report.record("valid_refused", 1.0, self.where, {"q0": self.q}, f"reset: {exc}")
+            else:
+                record_exception(self.report, exc, replace(self.where, phase="reset"), {"q0": self.q})
+            return False
+        return True
+
+    def _schedule(self) -> Iterator[tuple[Phase, int]]:
+        """(phase, tick within it) for each valid tick; disturbances begin and end here."""
+        for phase in self.phases:
+            self._begin(phase)
+            for k in range(phase.ticks):
+                if self.tick >= self.ticks:
+                    return
+                yield phase, k
+            if phase.kind == "pull":
+                self._disturbed(f"pull at {np.linalg.norm(phase.amp[:3]):.3g} m/s ending at tick {self.tick}",
+                                self.pull_from_ok)
+
+    def _begin(self, phase: Phase) -> None:
+        self.where.phase = phase.kind
+        if phase.kind == "hold" and self.check_drift:
+            self.hold.start()
+        else:
+            self.hold.stop()
+        if phase.kind == "pull":
+            end_recovery(self.pending, self.tick, self.report)
+            self.pending, self.pull_from_ok = None, self.recovered
+        robot = self.checker.robot
+        if phase.kind == "overshoot" and 0 <= limit_distance(robot, self.q) < math.radians(
+                self.config.overshoot_within_deg):
+            self.q = _outside(self.rng, robot, self.q, 0.01, self.config.overshoot_max_deg, nearest=True)
+            self.dq = np.zeros(self.q.size)
+            self._disturbed(f"overshoot past a limit at tick {self.tick}", self.recovered)
+
+    def _disturbed(self, what: str, measure: bool) -> None:
+        """A disturbance ended: recovery is measured from the next valid tick if ``measure`` (the controller was
+        OK with the tool on its reference when the disturbance began: else there is nothing to recover to)."""
+        end_recovery(self.pending, self.tick, self.report)
+        self.where.recent = what
+        self.pending = Recovery(what, self.tick, replace(self.where)) if measure else None
+
+    def _probe_burst(self) -> None:
+        """1 to ``probe_burst_max`` bad inputs at the plant's ``q``; recovery is measured after them."""
+        cfg = self.config
+        size = int(self.rng.integers(1, cfg.probe_burst_max + 1))
+        kinds = [cfg.probe_kinds[int(i)] for i in self.rng.integers(len(cfg.probe_kinds), size=size)]
+        outcomes = [send_probe(self.ctrl, make_probe(kind, self.rng, self.q, self.dq, self.checker.robot, cfg),
+                               self.checker, self.where, self.clock) for kind in kinds]
+        what = f"bad inputs {','.join(kinds)} before tick {self.tick}"
+        if "accepted" in outcomes:  # the controller acted on a q the plant never had; a refused one must not count
+            self.hold.glitch()
+        if self.pending is None:
+            self._disturbed(what, self.recovered)
+        else:  # already recovering from another disturbance: that one's clock runs on
+            self.where.recent = what
+
+    def _valid_tick(self, phase: Phase, k: int) -> None:
+        """One tick of the closed loop: the drift check (of the previous command's motion), maybe a burst of
+        bad inputs, ``step``, the command's checks, the plant, the reference."""
+        cfg, chk = self.config, self.checker
+        where = self.where
+        where.tick = self.tick
+        twist = twist_at(phase, k, self.dt, cfg, self.reference, self.home)
+        dq_in = None if self.dq_none else self.dq
+        inputs = {"q": self.q, "dq": dq_in, "tool_twist": twist}
+        error = chk.tool_error(self.q, *self.reference)
+        chk.drift(self.hold, error, self.previous, where, inputs)
+        if self.rng.random() < cfg.p_probe_burst:
+            self._probe_burst()
+        self.clock.take(0.0)  # bad inputs may have called the solver: not this tick's
+        cpu = time.thread_time()
+        cmd = self._step(twist, dq_in, inputs)
+        cpu = time.thread_time() - cpu
+        self.report.count_tick(self.strategy)
+        if cmd is not None and cmd.status & Status.QP_DEADLINE:
+            self.report.deadline_ticks += 1
+        finite = cmd is not None and chk.command(cmd, self.q, where, inputs, cpu_time=cpu,
+                                                 solver_cpu_time=self.clock.take(cpu))
+        self.failures_in_row = 0 if finite else self.failures_in_row + 1
+        if cmd is not None and self.strategy in cfg.rom_strategies:
+            self.rom_out = chk.rom(cmd, self.rom_out, where, inputs)
+        self.recovered = cmd is not None and cmd.ok and error[0] < cfg.recovery_tol_m
+        self.pending = update_recovery(self.pending, self.tick, cmd, error[0], chk, self.q, self.reference, inputs)
+        if self.fuzzer.observe is not None:
+            self.fuzzer.observe(where, inputs, cmd, error)
+        self.previous = None if cmd is None else cmd.status
+        self.dq = np.array(cmd.dq, dtype=float) if finite else np.zeros(self.q.size)  # type: ignore[union-attr]
+        self.q = self.q + self.dt * self.dq
+        self.reference = advance_reference(self.reference, twist, self.dt)
+        self.tick += 1
+
+    def _step(self, twist: np.ndarray | None, dq_in: np.ndarray | None, inputs: dict) -> Command | None:
+        try:
+            cmd = self.ctrl.step(self.q, dq=dq_in, tool_twist=twist)
+        except QpnsoError as exc:
+            self.report.record("valid_refused", 1.0, self.where, inputs, f"{type(exc).__name__}: {exc}")
+        except Exception as exc:  # noqa: BLE001
+            record_exception(self.report, exc, self.where, inputs)
+        else:
+            return cmd
+        return None

@@ -1,0 +1,181 @@
+"""The line fast path of the hierarchical QP (docs/method.md §7.3, §7.4).
+
+**Line fast path** (``QPSettings.line_fast_path``, on by default): the
+controller's first level is a plain task of n − 1 rows (6×7 tool Jacobian).
+When all its singular values reach the damping threshold (nothing to damp),
+its exact solutions form the line ``A⁺b + t·d`` (``d`` its unit null vector)
+and, when that line meets the bounds, the level's optimal set is exactly the
+segment ``t ∈ [t_lo, t_hi]`` (zero residual).  Level 1 is then known in closed
+form (its reported answer: the segment's least-norm point) and level 2 is a QP
+in ``t`` (plus its slacks) with the bounds as a box on ``t`` — the same QP that
+:func:`~qpnso.qp.cascade.build_level_qp` builds with ``Z = d``, solved by the same back end
+(ProxSuite, persistent and warm-started).  Whenever a bound cuts the line (the
+bounds bind the tool task), the task is near-singular, or there are more than
+two levels, the general cascade (:mod:`qpnso.qp.cascade`) runs.  The small factorisations are
+Numba kernels (:mod:`qpnso.linalg`).  Same answers as the general cascade
+(tests; its measured time: docs/changelog.md).
+Level 2 on the line is :meth:`~qpnso.qp.solver.HierarchicalQP.solve_line_level`
+(:meth:`~qpnso.qp.solver.HierarchicalQP.line_level_raw`, then
+:meth:`~qpnso.qp.solver.HierarchicalQP.line_level_result`); the
+controller's compiled tick (:mod:`qpnso.control.tick`) builds its arrays in one kernel,
+calls ``line_level_raw`` and judges the answer with the same kernel
+(:func:`checked_line_answer`) in its own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from qpnso.linalg import dot, least_norm_line, matvec
+from qpnso.qp.cascade import _NO_VECTOR, LevelQP, _no_rows, level_answer
+from qpnso.qp.levels import _LevelData
+from qpnso.qp.settings import QPSettings
+
+_OWNED_1 = np.ones((1, 1))
+_OWNED_0 = np.zeros((1, 0))
+
+
+@dataclass(slots=True)
+class _Line:
+    """The optimal set of a plain first task of full rank n − 1 whose exact solutions
+    meet the bounds: ``x0 + t·direction`` (rad/s), ``t ∈ [t_lo, t_hi]``, with
+    ``x0 = A⁺b`` and ``direction`` the unit null vector of ``A`` (sign fixed)."""
+
+    x0: np.ndarray
+    direction: np.ndarray
+    t_lo: float
+    t_hi: float
+
+
+@njit(cache=True)
+def line_segment(x0, d, lb, ub):  # type: ignore[no-untyped-def]
+    """``[t_lo, t_hi]`` where ``lb ≤ x0 + t·d ≤ ub`` (empty: ``t_lo > t_hi``); ``d`` made to have its
+    largest-magnitude entry positive first.  A still joint (|d_i| ≤ 1e-12: the elbow of an S-R-S
+    arm) must be within its bounds at ``x0``."""
+    n = d.shape[0]
+    big = np.argmax(np.abs(d))
+    if d[big] < 0.0:
+        d *= -1.0
+    t_lo, t_hi = -np.inf, np.inf
+    for i in range(n):
+        if abs(d[i]) > 1e-12:
+            a, c = (lb[i] - x0[i]) / d[i], (ub[i] - x0[i]) / d[i]
+            t_lo, t_hi = max(t_lo, min(a, c)), min(t_hi, max(a, c))
+        elif x0[i] < lb[i] or x0[i] > ub[i]:
+            return 1.0, 0.0
+    return t_lo, t_hi
+
+
+LINE_OK = 0
+LINE_SINGULAR = 1  # a singular value may be below the damping threshold: no line (damped cascade)
+LINE_CUT = 2  # the bounds miss the line of exact solutions (a bound binds the task: the QP decides)
+
+
+@njit(cache=True)
+def task_line(A, b, lb, ub, rank_tol, damping):  # type: ignore[no-untyped-def]
+    """``(code, x0, d, t_lo, t_hi)``: the exact solutions ``x0 + t·d``, ``t ∈ [t_lo, t_hi]``, of a
+    plain (n−1)×n task ``A x = b`` within ``lb ≤ x ≤ ub`` (module docstring, *line fast path*);
+    ``code`` :data:`LINE_SINGULAR` when ``σ_min`` may be below ``damping`` (``1/‖R⁻¹‖_F ≤ σ_min`` is
+    the test: conservative by at most √(n−1)), :data:`LINE_CUT` when the bounds miss the line."""
+    x0, d, sigma_floor = least_norm_line(A, b)
+    if not sigma_floor >= max(damping, rank_tol * max(1.0, math.sqrt(np.sum(A * A)))):
+        return LINE_SINGULAR, x0, d, 0.0, 0.0
+    t_lo, t_hi = line_segment(x0, d, lb, ub)
+    return (LINE_OK if t_lo <= t_hi else LINE_CUT), x0, d, t_lo, t_hi
+
+
+@njit(cache=True)
+def least_norm_point(x0, d, t_lo, t_hi):  # type: ignore[no-untyped-def]
+    """The least-norm point of the segment ``x0 + t·d``, ``t ∈ [t_lo, t_hi]`` (``x0 ⊥ d``): level 1's answer."""
+    return x0 + min(max(0.0, t_lo), t_hi) * d
+
+
+def _task_line(data: _LevelData, lb: np.ndarray, ub: np.ndarray, settings: QPSettings) -> _Line | None:
+    """Level 1 in closed form (:func:`task_line`), or None when it does not apply: not a plain task
+    of n − 1 rows, a singular value that may be below the damping threshold, or bounds that miss the line."""
+    Aw = data.Aw
+    if Aw is None or data.H is not None or data.g is not None or data.C is not None \
+            or Aw.shape[0] != Aw.shape[1] - 1:
+        return None
+    code, x0, d, t_lo, t_hi = task_line(Aw, data.bw, lb, ub, settings.rank_tol, settings.damping_threshold)
+    return _Line(x0, d, t_lo, t_hi) if code == LINE_OK else None
+
+
+@njit(cache=True)
+def line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale, reg, rank_tol, damping):  # type: ignore[no-untyped-def]
+    """The arrays of :func:`_line_level_qp` (absent level parts passed with zero rows).
+
+    Cost ``‖A x − b‖² + ½xᵀHx + gᵀx`` at ``x = x0 + t·d``: curvature and slope in ``t``
+    with the damping and tie-break of :func:`level_qp_arrays` / :func:`build_level_qp` in one
+    dimension; rows ``l − C x0 ≤ (C d) t + slack_scale·σ ≤ u − C x0``; box ``[t_lo, t_hi]`` on
+    ``t``, free slacks.  Returns ``H, g, C, l, u, box_l, box_u`` and whether the task owns ``d``."""
+    curvature, slope, owned = 0.0, 0.0, False
+    if A.shape[0]:
+        ad = matvec(A, d)
+        s2 = dot(ad, ad)
+        slope += 2.0 * dot(ad, matvec(A, x0) - b)
+        if np.sqrt(s2) > rank_tol * max(1.0, np.sqrt(s2)):
+            curvature, owned = 2.0 * max(s2, damping * damping), True
+    if H.shape[0]:
+        hd = matvec(H, d)
+        curvature += dot(d, hd)
+        slope += dot(hd, x0)
+    if g.shape[0]:
+        slope += dot(d, g)
+    if reg > 0.0 and not owned:
+        curvature += reg
+    nv, p = 1 + n_slack, C.shape[0]
+    Hq = np.eye(nv)
+    Hq[0, 0] = curvature
+    gq = np.zeros(nv)
+    gq[0] = slope
+    Cq = np.zeros((p, nv))
+    lq, uq = np.empty(p), np.empty(p)
+    for i in range(p):
+        cd, cx = 0.0, 0.0
+        for j in range(d.shape[0]):
+            cd += C[i, j] * d[j]
+            cx += C[i, j] * x0[j]
+        Cq[i, 0] = cd
+        lq[i], uq[i] = l[i] - cx, u[i] - cx
+        if i < n_slack:
+            Cq[i, 1 + i] = slack_scale
+    box_l, box_u = np.full(nv, -np.inf), np.full(nv, np.inf)
+    box_l[0], box_u[0] = t_lo, t_hi
+    return Hq, gq, Cq, lq, uq, box_l, box_u, owned
+
+
+def _line_level_qp(data: _LevelData, line: _Line, settings: QPSettings) -> LevelQP:
+    """The QP of a level restricted to ``x = x0 + t·direction``: :func:`build_level_qp` with
+    ``Z`` the line's direction (same damping and tie-break), the bounds folded into a box on ``t``."""
+    d = line.direction
+    n = d.shape[0]
+    ns = data.n_slack
+    H, g, C, lo, hi, box_l, box_u, owned = line_qp_arrays(
+        d, line.x0, line.t_lo, line.t_hi,
+        _no_rows(n) if data.Aw is None else data.Aw, _NO_VECTOR if data.bw is None else data.bw,
+        _no_rows(n) if data.H is None else data.H, _NO_VECTOR if data.g is None else data.g,
+        _no_rows(n) if data.C is None else data.C, _NO_VECTOR if data.l is None else data.l,
+        _NO_VECTOR if data.u is None else data.u, ns, 1.0 / math.sqrt(2.0 * data.rho) if ns else 0.0,
+        settings.regularization or 0.0, settings.rank_tol, settings.damping_threshold)
+    return LevelQP(H, g, C, lo, hi, box_l, box_u, line.x0, d[:, None], _OWNED_1 if owned else _OWNED_0, None,
+                   ns, 0, 0)
+
+
+
+LINE_ANSWER_OK, LINE_ANSWER_NOT_FINITE, LINE_ANSWER_VIOLATED = 0, 1, 2
+
+
+@njit(cache=True)
+def checked_line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack, tol):  # type: ignore[no-untyped-def]
+    """``(code, x, worst, slack)`` of :func:`level_answer` on the line (``Z = d``, box on ``t``), judged: :data:`LINE_ANSWER_NOT_FINITE` when ``t``
+    (all that ``x`` depends on) is not finite, :data:`LINE_ANSWER_VIOLATED` when the box or a hard row is
+    violated by more than ``tol``, else :data:`LINE_ANSWER_OK`."""
+    if not math.isfinite(v[0]):
+        return LINE_ANSWER_NOT_FINITE, x0.copy(), math.inf, np.zeros(n_slack)
+    x, worst, slack = level_answer(v, d.reshape(d.shape[0], 1), False, True, box_l, box_u, C, l, u, 0, n_slack, x0)
+    return (LINE_ANSWER_OK if worst <= tol else LINE_ANSWER_VIOLATED), x, worst, slack

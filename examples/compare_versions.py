@@ -62,8 +62,10 @@ def main() -> None:
     strategies = (args.strategies or ("qp" if smoke else ",".join(qpnso.STRATEGIES))).split(",")
     n = args.n or (300 if smoke else 3000)
     runs = {}
-    assert rewrite_imports("from qpnso.qp.line import x; import qpnso; qpnso.control.tick") == \
-        "from qpnso_other.qp.line import x; import qpnso_other; qpnso_other.control.tick"
+    assert (
+        rewrite_imports("from qpnso.qp.line import x; import qpnso; qpnso.control.tick")
+        == "from qpnso_other.qp.line import x; import qpnso_other; qpnso_other.control.tick"
+    )
     for lib, tag in ((qpnso, "this"), (qpnso if smoke else load_other(args.other), "other")):
         robot = lib.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.1])
         q0 = robot.sample_configuration()
@@ -82,8 +84,10 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for name in strategies:
         a, b = times[f"{name} this"], times[f"{name} other"]
-        print(f"| {name} | {np.median(a):.1f} | {np.median(b):.1f} | {np.median(a) / np.median(b):.3f} | "
-              f"{np.percentile(a, 99):.0f} | {np.percentile(b, 99):.0f} |")
+        print(
+            f"| {name} | {np.median(a):.1f} | {np.median(b):.1f} | {np.median(a) / np.median(b):.3f} | "
+            f"{np.percentile(a, 99):.0f} | {np.percentile(b, 99):.0f} |"
+        )
     if "Pink solve_ik" in times:
         print(f"\nPink solve_ik in the same run: median {np.median(times['Pink solve_ik']):.1f} µs")
 

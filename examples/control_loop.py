@@ -11,8 +11,13 @@ import numpy as np
 import qpnso
 
 robot = qpnso.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.10])  # tool point 10 cm beyond the flange
-config = qpnso.ControllerConfig(dt=1e-3, strategy="qp", rom_half_width_deg=30, safety_margin_deg=10,
-                                weights=qpnso.CostWeights(mass=1.0, friction_force=1.0))
+config = qpnso.ControllerConfig(
+    dt=1e-3,
+    strategy="qp",
+    rom_half_width_deg=30,
+    safety_margin_deg=10,
+    weights=qpnso.CostWeights(mass=1.0, friction_force=1.0),
+)
 ctrl = qpnso.Controller(robot, config)
 
 q = np.radians([10.0, 40.0, -10.0, -70.0, 20.0, 50.0, 0.0])  # measured joints, rad
@@ -31,5 +36,7 @@ for tick in range(1000):  # one second
 
 gc.unfreeze()  # the loop is over: objects frozen at exit would never be finalised
 drift = np.linalg.norm(robot.tool_pose(q).translation - start.translation)
-print(f"arm angle {np.degrees(cmd.arm_angle):.2f} deg in ROM_t {np.degrees(cmd.rom).round(2)} deg, "
-      f"cost {cmd.cost:.4f}, tool drift {drift:.1e} m, last tick {1e6 * cmd.tick_time:.0f} µs")
+print(
+    f"arm angle {np.degrees(cmd.arm_angle):.2f} deg in ROM_t {np.degrees(cmd.rom).round(2)} deg, "
+    f"cost {cmd.cost:.4f}, tool drift {drift:.1e} m, last tick {1e6 * cmd.tick_time:.0f} µs"
+)

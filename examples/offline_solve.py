@@ -6,9 +6,9 @@ Run: python examples/offline_solve.py   (same as: qpnso solve examples/trajector
 from pathlib import Path
 
 import qpnso
-from qpnso.lab.plots import plot_run
 from qpnso.control.offline import solve_trajectory
 from qpnso.control.trajectory import read_csv
+from qpnso.lab.plots import plot_run
 
 here = Path(__file__).parent
 robot = qpnso.load_robot("lwr4p")

@@ -13,10 +13,8 @@ from qpnso import compiled_cache as _compiled_cache  # noqa: E402
 
 _compiled_cache.begin_keyed_numba_cache(__version__)
 
-from qpnso.control.controller import Controller
-
 from qpnso.control.config import STRATEGIES, Command, ControllerConfig, Status
-from qpnso.model.costs import TERMS, CostModel, CostWeights, DirectionalCost
+from qpnso.control.controller import Controller
 from qpnso.elbow.arm_angle import (
     ArmAngle,
     ElbowPoints,
@@ -25,6 +23,8 @@ from qpnso.elbow.arm_angle import (
     arm_angle_status,
     elbow_points,
 )
+from qpnso.elbow.intervals import Interval, continuity_interval, feasible_intervals
+from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
 from qpnso.elbow.srs import Branch, branch, ik, self_motion
 from qpnso.errors import (
     ConfigError,
@@ -40,11 +40,10 @@ from qpnso.errors import (
     TrajectoryError,
     UnreachableError,
 )
-from qpnso.qp import HierarchicalQP, Level, QPSettings
-from qpnso.elbow.intervals import Interval, continuity_interval, feasible_intervals
+from qpnso.model.costs import TERMS, CostModel, CostWeights, DirectionalCost
 from qpnso.model.robot import JointFriction, Robot, load_robot
-from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
 from qpnso.model.symbolic import SymbolicModel
+from qpnso.qp import HierarchicalQP, Level, QPSettings
 
 _compiled_cache.end_keyed_numba_cache()  # last: other code's Numba kernels keep the user's setting
 

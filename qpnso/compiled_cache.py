@@ -68,8 +68,11 @@ def cache_root() -> Path:
     return Path(os.environ.get("QPNSO_CACHE_DIR", Path.home() / ".cache" / "qpnso"))
 
 
-_IMPORT = re.compile(r"^[ \t]*(?:from[ \t]+(\.*[\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#]*)"
-                     r"|import[ \t]+([^\n#]+))", re.M)
+_IMPORT = re.compile(
+    r"^[ \t]*(?:from[ \t]+(\.*[\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#]*)"
+    r"|import[ \t]+([^\n#]+))",
+    re.M,
+)
 """An import statement: ``from <1> import <2>`` (names, maybe in parentheses) or ``import <3>``."""
 _KERNELS = re.compile(r"^[ \t]*(?:(?:from|import)[ \t]+numba\b|@[\w.]*(?:jit|vectorize|cfunc|stencil)\b)", re.M)
 """A line that makes a file a kernel module: it imports Numba or decorates with a Numba compiler."""
@@ -169,8 +172,9 @@ def begin_keyed_numba_cache(version: str) -> Path:
         if new:
             _prune(folder)
         break
-    _user_numba_dir = numba.config.CACHE_DIR
-    numba.config.CACHE_DIR = str(folder)
+    # numba.config sets its settings at run time (from the environment): no attribute for mypy to see
+    _user_numba_dir = numba.config.CACHE_DIR  # type: ignore[attr-defined]
+    numba.config.CACHE_DIR = str(folder)  # type: ignore[attr-defined]
     _numba_dir = folder
     return folder
 
@@ -178,7 +182,7 @@ def begin_keyed_numba_cache(version: str) -> Path:
 def end_keyed_numba_cache() -> None:
     """Put back Numba's cache setting (qpnso's kernels keep the keyed folder they were given)."""
     if _user_numba_dir is not None:
-        numba.config.CACHE_DIR = _user_numba_dir
+        numba.config.CACHE_DIR = _user_numba_dir  # type: ignore[attr-defined]
 
 
 def numba_cache_dir() -> Path | None:

@@ -27,7 +27,7 @@ REGULARIZATION = 1e-12
 
 
 @njit(cache=True)
-def dot(a, b):  # type: ignore[no-untyped-def]
+def dot(a, b):
     """``aᵀb`` of two vectors."""
     acc = 0.0
     for i in range(a.shape[0]):
@@ -36,7 +36,7 @@ def dot(a, b):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def matvec(A, x):  # type: ignore[no-untyped-def]
+def matvec(A, x):
     """``A x`` (``A`` (m, n), any layout).  The kernels' products are written as loops: at these
     sizes (n ≤ 7) a BLAS call costs more than the arithmetic, and every ``@`` of a new layout
     costs seconds of Numba compilation."""
@@ -49,7 +49,7 @@ def matvec(A, x):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def matmul(A, B):  # type: ignore[no-untyped-def]
+def matmul(A, B):
     """``A B`` (any layouts)."""
     m, k = A.shape
     n = B.shape[1]
@@ -63,7 +63,7 @@ def matmul(A, B):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def least_norm_line(A, b):  # type: ignore[no-untyped-def]
+def least_norm_line(A, b):
     """``(x0, d, σ_floor)`` for ``A`` (n−1, n) and ``b`` (n−1,): ``x0 = A⁺b``, ``d`` a unit vector
     with ``A d = 0`` and ``σ_floor = 1/‖R⁻¹‖_F ≤ σ_min(A)`` (conservative by at most √(n−1));
     ``σ_floor = 0`` when ``A`` is singular.  Householder QR of ``Aᵀ = Q [R; 0]``."""
@@ -121,7 +121,7 @@ def least_norm_line(A, b):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def cholesky(M, regularization):  # type: ignore[no-untyped-def]
+def cholesky(M, regularization):
     """Lower factor ``L`` with ``L Lᵀ = M + regularization·tr(M)·I`` from the upper triangle of
     symmetric ``M``, and whether ``M`` was positive definite (else ``L`` is garbage)."""
     n = M.shape[0]
@@ -146,7 +146,7 @@ def cholesky(M, regularization):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def cholesky_solve(L, b):  # type: ignore[no-untyped-def]
+def cholesky_solve(L, b):
     """``x`` with ``L Lᵀ x = b`` (``b`` a vector)."""
     n = L.shape[0]
     y = np.empty(n)
@@ -164,7 +164,7 @@ def cholesky_solve(L, b):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def nullspace_part(J, v):  # type: ignore[no-untyped-def]
+def nullspace_part(J, v):
     """``v − J⁺Jv`` (``JJᵀ`` regularised by 1e-12 of its trace); ``v`` unchanged if that fails."""
     L, ok = cholesky(matmul(J, J.T), REGULARIZATION)
     if not ok:
@@ -173,7 +173,7 @@ def nullspace_part(J, v):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def dynamically_consistent_projection(A, J, tau):  # type: ignore[no-untyped-def]
+def dynamically_consistent_projection(A, J, tau):
     """``(Nᵀτ, ok)``: ``Nᵀτ = τ − Jᵀ Λ J A⁻¹ τ`` with ``Λ = (J A⁻¹ Jᵀ)⁻¹`` (docs/method.md §2); ``A`` by its
     upper triangle.  When ``A`` or ``J A⁻¹ Jᵀ`` cannot be factorised (``ok`` False): zero, never NaN and
     never ``τ`` unprojected (that would push the tool): the tick's torque is then ``g(q)`` alone."""

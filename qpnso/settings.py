@@ -32,7 +32,7 @@ import math
 import types
 import typing
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -54,7 +54,7 @@ class SettingError(ConfigError):
         head = " = ".join(part for part in (key, value) if part)
         super().__init__(": ".join(part for part in (where, head, problem) if part))
 
-    def __reduce__(self):  # type: ignore[no-untyped-def]  # picklable (study workers)
+    def __reduce__(self):  # picklable (study workers)
         return type(self), (self.where, self.key, self.problem, self.value)
 
     def within(self, table: str = "", where: str | None = None) -> SettingError:
@@ -67,7 +67,7 @@ class SettingError(ConfigError):
 def show(value: Any, limit: int = 80) -> str:
     """``repr`` of ``value`` as plain Python data (never ``np.float64(0.08)``), cut to ``limit`` characters."""
     text = repr(_plain(value))
-    return text if len(text) <= limit else text[:limit - 3] + "..."
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _plain(value: Any) -> Any:
@@ -97,8 +97,9 @@ def _field_types(cls: type) -> dict[str, Any]:
 def check(obj: Any) -> None:
     """Check every field of settings dataclass ``obj`` against its type hint and store
     the converted value (frozen dataclasses too); :class:`SettingError` if one does not fit."""
-    where = type(obj).__name__
-    for name, hint in _field_types(type(obj)).items():
+    cls: type = type(obj)
+    where = cls.__name__
+    for name, hint in _field_types(cls).items():
         object.__setattr__(obj, name, _field_value(hint, getattr(obj, name), name, where))
 
 
@@ -108,15 +109,26 @@ def check_table(cls: type, values: Any, where: str = "") -> dict[str, Any]:
     ones, missing required keys named, nested tables built through their ``from_dict``."""
     where = where or cls.__name__
     if not isinstance(values, Mapping):
-        raise SettingError(where, "", f"expected a table of {cls.__name__} settings, got {type(values).__name__}",
-                           show(values))
+        raise SettingError(
+            where, "", f"expected a table of {cls.__name__} settings, got {type(values).__name__}", show(values)
+        )
     hints = _field_types(cls)
     unknown = sorted((str(k) for k in values if k not in hints))
     if unknown:
-        raise SettingError(where, "", f"unknown key{'s' if len(unknown) > 1 else ''} "
-                           f"{', '.join(map(repr, unknown))}; valid keys: {', '.join(sorted(hints))}")
-    missing = [f.name for f in dataclasses.fields(cls) if f.init and f.name not in values
-               and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+        raise SettingError(
+            where,
+            "",
+            f"unknown key{'s' if len(unknown) > 1 else ''} "
+            f"{', '.join(map(repr, unknown))}; valid keys: {', '.join(sorted(hints))}",
+        )
+    missing = [
+        f.name
+        for f in dataclasses.fields(cls)
+        if f.init
+        and f.name not in values
+        and f.default is dataclasses.MISSING
+        and f.default_factory is dataclasses.MISSING
+    ]
     if missing:
         more = f" (and {', '.join(map(repr, missing[1:]))})" if len(missing) > 1 else ""
         raise SettingError(where, "", f"missing key {missing[0]!r}{more}")
@@ -164,7 +176,7 @@ def _convert(hint: Any, value: Any) -> Any:
         return value
     if hint is type(None):
         return None if value is None else _BAD
-    if dataclasses.is_dataclass(hint):
+    if _is_dataclass_hint(hint):
         return value if isinstance(value, hint) else _BAD
     if hint is dict or origin is dict:
         return value if isinstance(value, dict) else _BAD
@@ -197,10 +209,15 @@ def _convert(hint: Any, value: Any) -> Any:
     raise TypeError(f"qpnso.settings: unsupported field type {hint!r}")
 
 
+def _is_dataclass_hint(hint: Any) -> TypeGuard[type]:
+    """:func:`dataclasses.is_dataclass` of a type hint, which names a class (never an instance)."""
+    return dataclasses.is_dataclass(hint)
+
+
 def _dataclass_in(hint: Any) -> type | None:
     """The settings dataclass ``hint`` names (alone or in a union), or None."""
     arms = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
-    return next((arm for arm in arms if dataclasses.is_dataclass(arm)), None)
+    return next((arm for arm in arms if _is_dataclass_hint(arm)), None)
 
 
 def _describe(hint: Any) -> str:
@@ -214,10 +231,16 @@ def _describe(hint: Any) -> str:
         if len(set(args)) == 1:
             return f"a list of {len(args)} {_plural(args[0])}"
         return f"a list of {len(args)} items ({', '.join(_describe(a) for a in args)})"
-    if dataclasses.is_dataclass(hint):
+    if _is_dataclass_hint(hint):
         return f"a table of {hint.__name__} settings"
-    return {float: "a finite number (int or float)", int: "an integer", bool: "true or false", str: "a string",
-            dict: "a table", type(None): "None"}.get(hint, str(hint))
+    return {
+        float: "a finite number (int or float)",
+        int: "an integer",
+        bool: "true or false",
+        str: "a string",
+        dict: "a table",
+        type(None): "None",
+    }.get(hint, str(hint))
 
 
 def _plural(hint: Any) -> str:

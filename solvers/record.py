@@ -27,15 +27,19 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--full", action="store_true", help="the large set (longer runs, more ticks kept)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random held-tool postures")
-    parser.add_argument("--out", type=Path, default=None, help="output .npz (default solvers/problems/{quick,full}.npz)")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="output .npz (default solvers/problems/{quick,full}.npz)"
+    )
     args = parser.parse_args(argv)
     out = args.out or HERE / "problems" / ("full.npz" if args.full else "quick.npz")
     t0 = time.perf_counter()
     record_problem_set(out, full=args.full, seed=args.seed, progress=print)
     problems, meta = load_problems(out)
     spread = max((p.ref_spread for p in problems if p.ref_spread == p.ref_spread), default=float("nan"))
-    print(f"{out}: {len(problems)} problems, {out.stat().st_size / 1e3:.0f} kB, "
-          f"reference cross-check spread {spread:.1e}, {time.perf_counter() - t0:.0f} s")
+    print(
+        f"{out}: {len(problems)} problems, {out.stat().st_size / 1e3:.0f} kB, "
+        f"reference cross-check spread {spread:.1e}, {time.perf_counter() - t0:.0f} s"
+    )
     return 0
 
 

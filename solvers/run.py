@@ -1,7 +1,8 @@
+# `--help` prints this docstring as a raw description: `fmt: skip` keeps the command's indent.
 """Run the QP solver benchmark (same as ``qpnso bench solvers [--quick] --out DIR``).
 
     python solvers/run.py --quick --out solvers/results
-"""
+"""  # fmt: skip
 
 from __future__ import annotations
 

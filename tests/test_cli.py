@@ -24,11 +24,14 @@ def test_info_accepts_degrees_and_another_robot(capsys) -> None:
     assert "[0.0, 30.0, 0.0, -60.0, 0.0, 45.0, 0.0] deg" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["info", "ur5"], "unknown robot 'ur5'"),
-    (["info", "--q", "0,0,0,3,0,0,0"], "outside its limits"),
-    (["info", "--tool-frame", "nope"], "unknown tool frame"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["info", "ur5"], "unknown robot 'ur5'"),
+        (["info", "--q", "0,0,0,3,0,0,0"], "outside its limits"),
+        (["info", "--tool-frame", "nope"], "unknown tool frame"),
+    ],
+)
 def test_info_errors_are_one_line(capsys, argv, message) -> None:
     assert main(argv) == 2
     err = capsys.readouterr().err
@@ -50,14 +53,31 @@ def test_intervals_writes_a_png(tmp_path, capsys) -> None:
 
 def test_trajectory_solve_plot_pipeline(tmp_path, capsys) -> None:
     csv = tmp_path / "hold.csv"
-    assert main(["trajectory", "hold", "--center", "0.65,0,0.5", "--rpy-deg", "180,30,180",
-                 "--duration", "0.2", "--out", str(csv)]) == 0
+    assert (
+        main(
+            [
+                "trajectory",
+                "hold",
+                "--center",
+                "0.65,0,0.5",
+                "--rpy-deg",
+                "180,30,180",
+                "--duration",
+                "0.2",
+                "--out",
+                str(csv),
+            ]
+        )
+        == 0
+    )
     res, summary = tmp_path / "r.npz", tmp_path / "s.json"
-    assert main(["solve", str(csv), "--out", str(res), "--summary", str(summary), "--quiet",
-                 "--strategy", "damped"]) == 0
+    assert (
+        main(["solve", str(csv), "--out", str(res), "--summary", str(summary), "--quiet", "--strategy", "damped"]) == 0
+    )
     out = capsys.readouterr().out
     assert "strategy damped" in out and "tool_position_error_max_m" in out
     import json
+
     data = json.loads(summary.read_text())
     assert data["strategy"] == "damped" and data["ticks"] == 201
     fig = tmp_path / "r.png"
@@ -65,12 +85,15 @@ def test_trajectory_solve_plot_pipeline(tmp_path, capsys) -> None:
     assert fig.stat().st_size > 10_000
 
 
-@pytest.mark.parametrize("content, message", [
-    ("t,x,y,z,qx,qy,qz\n0,0,0,0,0,0,0\n", "qw"),
-    ("t,x,y,z,qx,qy,qz,qw\n0,0.6,0,0.5,1,0,0,0\n0,0.6,0,0.5,1,0,0,0\n", "row 2"),
-    ("t,x,y,z,qx,qy,qz,qw\n0,0.6,0,0.5,1,0,0,0\n1,nan,0,0.5,1,0,0,0\n", "row 2"),
-    ("t,x,y,z,qx,qy,qz,qw\n0,0.6,0,0.5,1,0,0,0\n1,0.6,0,0.5,2,0,0,0\n", "row 2"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("t,x,y,z,qx,qy,qz\n0,0,0,0,0,0,0\n", "qw"),
+        ("t,x,y,z,qx,qy,qz,qw\n0,0.6,0,0.5,1,0,0,0\n0,0.6,0,0.5,1,0,0,0\n", "row 2"),
+        ("t,x,y,z,qx,qy,qz,qw\n0,0.6,0,0.5,1,0,0,0\n1,nan,0,0.5,1,0,0,0\n", "row 2"),
+        ("t,x,y,z,qx,qy,qz,qw\n0,0.6,0,0.5,1,0,0,0\n1,0.6,0,0.5,2,0,0,0\n", "row 2"),
+    ],
+)
 def test_solve_rejects_malformed_csv_without_output(tmp_path, capsys, content, message) -> None:
     csv = tmp_path / "bad.csv"
     csv.write_text(content)
@@ -83,8 +106,20 @@ def test_solve_rejects_malformed_csv_without_output(tmp_path, capsys, content, m
 
 def test_solve_rejects_unknown_strategy_and_config_key(tmp_path, capsys) -> None:
     csv = tmp_path / "hold.csv"
-    main(["trajectory", "hold", "--center", "0.65,0,0.5", "--rpy-deg", "180,30,180", "--duration", "0.05",
-          "--out", str(csv)])
+    main(
+        [
+            "trajectory",
+            "hold",
+            "--center",
+            "0.65,0,0.5",
+            "--rpy-deg",
+            "180,30,180",
+            "--duration",
+            "0.05",
+            "--out",
+            str(csv),
+        ]
+    )
     assert main(["solve", str(csv), "--strategy", "magic", "--out", str(tmp_path / "r.npz"), "--quiet"]) == 2
     assert "unknown strategy 'magic'" in capsys.readouterr().err
     cfg = tmp_path / "c.toml"
@@ -103,12 +138,42 @@ def test_solve_rejects_an_unreachable_trajectory(tmp_path, capsys) -> None:
 
 def test_simulate_and_compare(tmp_path, capsys) -> None:
     out = tmp_path / "sim"
-    assert main(["simulate", "--scenario", "A", "--strategy", "qp", "--duration-scale", "0.01",
-                 "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--scenario",
+                "A",
+                "--strategy",
+                "qp",
+                "--duration-scale",
+                "0.01",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert {p.name for p in out.iterdir()} == {"result.npz", "summary.json", "run.png"}
     cmp_out = tmp_path / "cmp"
-    assert main(["compare", "--scenario", "B", "--strategies", "qp,damped", "--duration-scale", "0.01",
-                 "--out", str(cmp_out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "compare",
+                "--scenario",
+                "B",
+                "--strategies",
+                "qp,damped",
+                "--duration-scale",
+                "0.01",
+                "--out",
+                str(cmp_out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     table = (cmp_out / "comparison.md").read_text()
     assert "| qp |" in table and "| damped |" in table
     assert (cmp_out / "comparison.png").stat().st_size > 10_000
@@ -139,8 +204,10 @@ ROW = "{t:.2f},{x:.6g},0,0.5,4.329780281e-17,0.9659258263,4.329780281e-17,0.2588
 def jump_csv(path, rows: int = 121, jump_row: int = 100) -> list[float]:
     """A 10 ms hold at x = 0.65 m whose x jumps by 2 m from data row ``jump_row`` (1-based) on."""
     times = [0.01 * i for i in range(rows)]
-    path.write_text("t,x,y,z,qx,qy,qz,qw\n" + "".join(
-        ROW.format(t=t, x=0.65 + (2.0 if i + 1 >= jump_row else 0.0)) for i, t in enumerate(times)))
+    path.write_text(
+        "t,x,y,z,qx,qy,qz,qw\n"
+        + "".join(ROW.format(t=t, x=0.65 + (2.0 if i + 1 >= jump_row else 0.0)) for i, t in enumerate(times))
+    )
     return times
 
 
@@ -149,8 +216,7 @@ def test_solve_fails_when_the_tool_leaves_the_path(tmp_path, capsys) -> None:
     csv = tmp_path / "jump.csv"
     times = jump_csv(csv)
     res, summary = tmp_path / "r.npz", tmp_path / "s.json"
-    assert main(["solve", str(csv), "--out", str(res), "--summary", str(summary), "--quiet",
-                 "--dt", "0.004"]) == 1
+    assert main(["solve", str(csv), "--out", str(res), "--summary", str(summary), "--quiet", "--dt", "0.004"]) == 1
     captured = capsys.readouterr()
     line = captured.err.strip()
     assert line.startswith("qpnso: failed:") and "\n" not in line and "Traceback" not in captured.err
@@ -177,8 +243,7 @@ def test_solve_tool_tolerance_flags(tmp_path, capsys) -> None:
     csv = tmp_path / "jump.csv"
     jump_csv(csv, rows=41, jump_row=30)
     summary = tmp_path / "s.json"
-    argv = ["solve", str(csv), "--out", str(tmp_path / "r.npz"), "--summary", str(summary), "--quiet",
-            "--dt", "0.005"]
+    argv = ["solve", str(csv), "--out", str(tmp_path / "r.npz"), "--summary", str(summary), "--quiet", "--dt", "0.005"]
     assert main([*argv, "--tool-tolerance-mm", "5000", "--tool-tolerance-deg", "90"]) == 0
     data = json.loads(summary.read_text())
     assert data["result"] == "ok" and data["tool_tolerance_m"] == 5.0 and data["tool_tolerance_deg"] == 90.0
@@ -189,25 +254,52 @@ def test_solve_tool_tolerance_flags(tmp_path, capsys) -> None:
 
 def test_solve_ok_run_says_ok(tmp_path, capsys) -> None:
     csv = tmp_path / "hold.csv"
-    main(["trajectory", "hold", "--center", "0.65,0,0.5", "--rpy-deg", "180,30,180", "--duration", "0.05",
-          "--out", str(csv)])
+    main(
+        [
+            "trajectory",
+            "hold",
+            "--center",
+            "0.65,0,0.5",
+            "--rpy-deg",
+            "180,30,180",
+            "--duration",
+            "0.05",
+            "--out",
+            str(csv),
+        ]
+    )
     summary = tmp_path / "s.json"
     assert main(["solve", str(csv), "--out", str(tmp_path / "r.npz"), "--summary", str(summary), "--quiet"]) == 0
     data = json.loads(summary.read_text())
     assert data["result"] == "ok" and "first_failed_data_row" not in data
     assert isinstance(data["slow_ticks"], float) and data["tick_time_max_ms"] == pytest.approx(
-        data["tick_time_max_us"] / 1000)
+        data["tick_time_max_us"] / 1000
+    )
     assert "qpnso: failed" not in capsys.readouterr().err
 
 
 def test_bad_q0_is_one_line_naming_it(tmp_path, capsys) -> None:
     """Item 12: a bad --q0 printed the top-level usage; now one line naming --q0."""
     csv = tmp_path / "hold.csv"
-    main(["trajectory", "hold", "--center", "0.65,0,0.5", "--rpy-deg", "180,30,180", "--duration", "0.05",
-          "--out", str(csv)])
+    main(
+        [
+            "trajectory",
+            "hold",
+            "--center",
+            "0.65,0,0.5",
+            "--rpy-deg",
+            "180,30,180",
+            "--duration",
+            "0.05",
+            "--out",
+            str(csv),
+        ]
+    )
     capsys.readouterr()
-    for q0, message in (("0,1,2", "--q0 needs 7 comma-separated numbers, got 3"),
-                        ("0,a,0,0,0,0,0", "--q0 must be comma-separated numbers")):
+    for q0, message in (
+        ("0,1,2", "--q0 needs 7 comma-separated numbers, got 3"),
+        ("0,a,0,0,0,0,0", "--q0 must be comma-separated numbers"),
+    ):
         assert main(["solve", str(csv), "--q0", q0, "--out", str(tmp_path / "r.npz"), "--quiet"]) == 2
         err = capsys.readouterr().err
         assert err.startswith(f"qpnso: error: {message}") and err.count("\n") == 1 and "usage" not in err
@@ -241,11 +333,22 @@ def test_six_dof_arm_is_refused_by_name(tmp_path, capsys) -> None:
     urdf = six_dof_urdf(tmp_path)
     assert main(["info", str(urdf)]) == 0  # describing the model is fine
     assert "nq = 6" in capsys.readouterr().out
-    expected = "qpnso: error: qpnso needs a 7-DOF arm (one redundant degree of freedom for a 6-D tool task); " \
-               "arm6 has 6 joints\n"
-    for argv in (["solve", "examples/trajectories/hold_lwr4p.csv", "--robot", str(urdf),
-                  "--out", str(tmp_path / "r.npz"), "--quiet"],
-                 ["intervals", str(urdf), "--out", str(tmp_path / "iv.png")]):
+    expected = (
+        "qpnso: error: qpnso needs a 7-DOF arm (one redundant degree of freedom for a 6-D tool task); "
+        "arm6 has 6 joints\n"
+    )
+    for argv in (
+        [
+            "solve",
+            "examples/trajectories/hold_lwr4p.csv",
+            "--robot",
+            str(urdf),
+            "--out",
+            str(tmp_path / "r.npz"),
+            "--quiet",
+        ],
+        ["intervals", str(urdf), "--out", str(tmp_path / "iv.png")],
+    ):
         assert main(argv) == 2
         assert capsys.readouterr().err == expected
     assert not (tmp_path / "r.npz").exists()
@@ -265,8 +368,23 @@ def test_simulate_without_matplotlib_says_the_figure_was_skipped(tmp_path, capsy
     """Item 12: without matplotlib, simulate left no figure and no word; now it says so, and exits 0."""
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
     out = tmp_path / "sim"
-    assert main(["simulate", "--scenario", "A", "--strategy", "damped", "--duration-scale", "0.003",
-                 "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--scenario",
+                "A",
+                "--strategy",
+                "damped",
+                "--duration-scale",
+                "0.003",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert {p.name for p in out.iterdir()} == {"result.npz", "summary.json"}
     err = capsys.readouterr().err
     assert "run.png skipped: matplotlib is not installed (pip install 'qpnso[plot]')" in err

@@ -36,8 +36,9 @@ def _env(cache: Path, pythonpath: Path | None = None, **extra: str) -> dict[str,
 
 
 def _python(code: str, env: dict[str, str], cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
-    done = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, cwd=cwd, capture_output=True,
-                          text=True, timeout=timeout)
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], env=env, cwd=cwd, capture_output=True, text=True, timeout=timeout
+    )
     assert done.returncode == 0, done.stderr
     return done
 
@@ -64,7 +65,9 @@ def test_kernel_recompiles_when_a_kernel_it_calls_in_another_module_changes(tmp_
         return _python(code, env, tmp_path).stdout.strip()
 
     before = run()
-    linalg.write_bytes(original + textwrap.dedent("""
+    linalg.write_bytes(
+        original
+        + textwrap.dedent("""
 
         _matmul_before = matmul
 
@@ -72,7 +75,8 @@ def test_kernel_recompiles_when_a_kernel_it_calls_in_another_module_changes(tmp_
         @njit(cache=True)
         def matmul(A, B):  # type: ignore[no-untyped-def]
             return 2.0 * _matmul_before(A, B)
-    """).encode())
+    """).encode()
+    )
     changed = run()
     assert changed != before, "pose_error ran the cached code of the old linalg.matmul"
     linalg.write_bytes(original)
@@ -93,8 +97,11 @@ def test_every_kernel_is_cached_in_the_keyed_folder() -> None:
             module = importlib.import_module(info.name)
         except ImportError:  # an optional dependency (extras) missing
             continue
-        here = [v for v in vars(module).values()
-                if isinstance(v, numba.core.dispatcher.Dispatcher) and v.py_func.__module__ == module.__name__]
+        here = [
+            v
+            for v in vars(module).values()
+            if isinstance(v, numba.core.dispatcher.Dispatcher) and v.py_func.__module__ == module.__name__
+        ]
         for kernel in here:
             path = getattr(kernel._cache, "_cache_path", None)  # None: not cache=True
             assert path is None or Path(path).is_relative_to(folder), (kernel, path)
@@ -145,8 +152,9 @@ exec {os.environ.get("CC", "cc")} "$@"
         x0 = np.array([1.0, 2.0, 3.0])
         assert np.allclose(ff(x0)[0], fn(x0).full().ravel(), rtol=1e-14)
     """)
-    second = subprocess.Popen([sys.executable, "-c", wait], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True)
+    second = subprocess.Popen(
+        [sys.executable, "-c", wait], env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
         assert second.stdout.readline().strip() == "constructed False"
         assert not list(cache.glob("*.so")) and len(list(cache.glob("*.tmp"))) == 1  # the first's compile
@@ -180,8 +188,14 @@ def test_cold_start_says_what_compiles(tmp_path) -> None:
         print("cold", flush=True)
         qpnso.Controller(qpnso.load_robot("lwr4p"))
     """)
-    proc = subprocess.Popen([sys.executable, "-c", code], env=_env(tmp_path / "cache"), cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code],
+        env=_env(tmp_path / "cache"),
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     line = "qpnso: compiling the control tick's kernels for this machine (once, about"
     try:
         assert proc.stdout.readline().strip() == "cold"

@@ -14,8 +14,8 @@ import pinocchio as pin
 import pytest
 
 import qpnso
-from qpnso.control.controller import Controller
 from qpnso.control.config import ControllerConfig, Status
+from qpnso.control.controller import Controller
 from qpnso.qp import HQPResult, LevelResult, LevelStatus
 
 DT = 1e-3
@@ -242,9 +242,10 @@ def test_q_outside_limits_is_flagged_and_pushed_back(lwr_qp: Controller) -> None
 def test_failed_qp_falls_back_to_holding_the_tool(lwr_qp: Controller, monkeypatch) -> None:
     q0 = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2])
     lwr_qp.reset(q0)
+
     def failing(levels, lb, ub, check=True, time_budget=None):
-        return HQPResult(None, False, "level 1 of 2 infeasible: test", 0,
-                         [LevelResult(LevelStatus.INFEASIBLE)], 0.0)
+        return HQPResult(None, False, "level 1 of 2 infeasible: test", 0, [LevelResult(LevelStatus.INFEASIBLE)], 0.0)
+
     monkeypatch.setattr(lwr_qp.qp, "solve", failing)
     monkeypatch.setattr(lwr_qp, "compiled_tick", False)  # the compiled tick does not call qp.solve (test_tick.py)
     cmd = lwr_qp.step(q0)
@@ -272,6 +273,7 @@ def test_no_allocation_per_tick(lwr_qp: Controller, monkeypatch) -> None:
 
     def forbidden(*args, **kwargs):
         raise AssertionError("a CasADi function was built during a tick")
+
     monkeypatch.setattr(qpnso.model.symbolic.SymbolicModel, "function", forbidden)
     monkeypatch.setattr(qpnso.model.codegen.FastFunction, "__init__", forbidden)
     for _ in range(100):
@@ -279,11 +281,14 @@ def test_no_allocation_per_tick(lwr_qp: Controller, monkeypatch) -> None:
     assert lwr_qp.qp.stats.qp_created == created
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"strategy": "magic"}, "unknown strategy"),
-    ({"dt": 0.0}, "dt"),
-    ({"joint_limit_gain": 2000.0}, "joint_limit_gain"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"strategy": "magic"}, "unknown strategy"),
+        ({"dt": 0.0}, "dt"),
+        ({"joint_limit_gain": 2000.0}, "joint_limit_gain"),
+    ],
+)
 def test_bad_config(kwargs, match) -> None:
     with pytest.raises(qpnso.ConfigError, match=match):
         ControllerConfig(**kwargs)

@@ -25,14 +25,22 @@ def reference_terms(robot: qpnso.Robot, q: np.ndarray, s: float, s_w: float) -> 
             total += np.sum((jbar.T @ tau_f) ** 2)
         out["det_" + key] = np.linalg.det(lam_inv)
         out["fric_" + key] = total
-    return {"mass": -out["det_v"], "inertia": -out["det_w"],
-            "friction_force": out["fric_v"], "friction_torque": out["fric_w"]}
+    return {
+        "mass": -out["det_v"],
+        "inertia": -out["det_w"],
+        "friction_force": out["fric_v"],
+        "friction_torque": out["fric_w"],
+    }
 
 
 @pytest.fixture(scope="module")
 def cost(lwr) -> qpnso.CostModel:
-    return qpnso.CostModel(lwr, qpnso.CostWeights(mass=1, inertia=0.5, friction_force=1, friction_torque=0.3),
-                           potential_speed=0.05, potential_angular_speed=0.4)
+    return qpnso.CostModel(
+        lwr,
+        qpnso.CostWeights(mass=1, inertia=0.5, friction_force=1, friction_torque=0.3),
+        potential_speed=0.05,
+        potential_angular_speed=0.4,
+    )
 
 
 def test_terms_match_the_reference(lwr, cost, rng) -> None:
@@ -119,11 +127,14 @@ def test_directional_measures(lwr, cost, rng) -> None:
     assert np.isclose(cost.directional(u, kind="inertia").value(q), -lam_w[2, 2], rtol=1e-10)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"directions": [0, 0, 0]}, "non-zero"),
-    ({"directions": [1, 0, 0], "exponent": 2}, "exponent"),
-    ({"directions": [1, 0, 0], "kind": "torque"}, "kind"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"directions": [0, 0, 0]}, "non-zero"),
+        ({"directions": [1, 0, 0], "exponent": 2}, "exponent"),
+        ({"directions": [1, 0, 0], "kind": "torque"}, "kind"),
+    ],
+)
 def test_directional_bad_input(cost, kwargs, match) -> None:
     with pytest.raises(qpnso.InputError, match=match):
         cost.directional(**kwargs)

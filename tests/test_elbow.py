@@ -88,10 +88,12 @@ def test_gradient_matches_central_differences(robot: Robot, rng) -> None:
     h = 1e-6
     for q in _regular_qs(robot, rng, 10):
         grad = E.arm_angle_gradient(robot, q)
-        fd = np.array([
-            np.angle(np.exp(1j * (E.arm_angle(robot, q + h * e) - E.arm_angle(robot, q - h * e)))) / (2 * h)
-            for e in np.eye(7)
-        ])
+        fd = np.array(
+            [
+                np.angle(np.exp(1j * (E.arm_angle(robot, q + h * e) - E.arm_angle(robot, q - h * e)))) / (2 * h)
+                for e in np.eye(7)
+            ]
+        )
         assert np.allclose(grad, fd, atol=1e-6, rtol=1e-6)
 
 

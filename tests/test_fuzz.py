@@ -10,8 +10,19 @@ import pytest
 import qpnso
 from qpnso.control.config import STRATEGIES, Command, Status
 from qpnso.errors import InputError
-from qpnso.lab.fuzz import (CHECK_KEYS, PROBE_KINDS, FuzzConfig, FuzzReport, HoldMonitor, Probe, TickChecker, Where,
-                        make_probe, run_fuzz, send_probe)
+from qpnso.lab.fuzz import (
+    CHECK_KEYS,
+    PROBE_KINDS,
+    FuzzConfig,
+    FuzzReport,
+    HoldMonitor,
+    Probe,
+    TickChecker,
+    Where,
+    make_probe,
+    run_fuzz,
+    send_probe,
+)
 
 
 @pytest.fixture(scope="module")
@@ -28,13 +39,25 @@ TICKS = 18_000
 WHERE = Where(seed=0, episode=0, strategy="qp", start="uniform", phase="hold")
 
 
-def fake_command(robot: qpnso.Robot, q: np.ndarray, dq: np.ndarray | None = None, tau: np.ndarray | None = None,
-                 **fields) -> Command:
+def fake_command(
+    robot: qpnso.Robot, q: np.ndarray, dq: np.ndarray | None = None, tau: np.ndarray | None = None, **fields
+) -> Command:
     """A Command as the controller makes one: q_des = q + dt·dq, gravity-like torque."""
     dq = np.zeros(robot.nq) if dq is None else dq
-    values = dict(dq=dq, q_des=q + 1e-3 * dq, tau=np.zeros(robot.nq) if tau is None else tau, stiffness=0.0,
-                  arm_angle=0.0, rom=(-1.0, 1.0), interval=(-3.0, 3.0), cost=0.0, status=Status.OK,
-                  solve_time=1e-5, tick_time=2e-5, tool_error=(0.0, 0.0))
+    values = dict(
+        dq=dq,
+        q_des=q + 1e-3 * dq,
+        tau=np.zeros(robot.nq) if tau is None else tau,
+        stiffness=0.0,
+        arm_angle=0.0,
+        rom=(-1.0, 1.0),
+        interval=(-3.0, 3.0),
+        cost=0.0,
+        status=Status.OK,
+        solve_time=1e-5,
+        tick_time=2e-5,
+        tool_error=(0.0, 0.0),
+    )
     values.update(fields)
     return Command(**values)
 
@@ -45,8 +68,9 @@ def nonzero(report: FuzzReport) -> dict[str, int]:
 
 def test_a_good_command_passes(checker, tool_robot) -> None:
     q = tool_robot.sample_configuration()
-    assert checker.command(fake_command(tool_robot, q, dq=0.5 * tool_robot.dq_max, tau=0.9 * tool_robot.tau_limit),
-                           q, WHERE, {"q": q})
+    assert checker.command(
+        fake_command(tool_robot, q, dq=0.5 * tool_robot.dq_max, tau=0.9 * tool_robot.tau_limit), q, WHERE, {"q": q}
+    )
     assert nonzero(checker.report) == {} and checker.report.failures() == []
 
 
@@ -74,8 +98,10 @@ def test_checker_sees_non_finite_velocity_limit_torque_and_time(checker, tool_ro
     assert rep.counts["limit_crossing"] == 1 and rep.worst["limit_crossing"].value == pytest.approx(9e-4)
     checker.command(fake_command(tool_robot, q, solve_time=2e-3), q, WHERE, {"q": q})
     assert rep.counts["solve_time"] == 1
-    assert {f.split(":")[0] for f in rep.failures()} >= {"0 non-finite commands (dq, q_des, tau)",
-                                                         "0 torques above the effort limits (abs(tau) ≤ tau_limit)"}
+    assert {f.split(":")[0] for f in rep.failures()} >= {
+        "0 non-finite commands (dq, q_des, tau)",
+        "0 torques above the effort limits (abs(tau) ≤ tau_limit)",
+    }
     assert "| 0 torques above the effort limits (abs(tau) ≤ tau_limit) | 1 | 2 × tau_limit" in rep.table()
 
 
@@ -165,8 +191,9 @@ def test_cli_bench_fuzz_writes_the_report_and_sets_the_exit_status(tmp_path, cap
     from qpnso.cli import main
 
     out = tmp_path / "fuzz.json"
-    code = main(["bench", "fuzz", "-n", "300", "--seed", "3", "--strategies", "damped,qp", "--out", str(out),
-                 "--quiet"])
+    code = main(
+        ["bench", "fuzz", "-n", "300", "--seed", "3", "--strategies", "damped,qp", "--out", str(out), "--quiet"]
+    )
     data = json.loads(out.read_text())
     assert data["ticks"] == 300 and data["config"]["seed"] == 3 and data["config"]["strategies"] == ["damped", "qp"]
     assert code == (1 if data["failures"] else 0)
@@ -180,8 +207,23 @@ def test_cli_bench_fuzz_passes_the_solver_time_budget_and_counts_its_ticks(tmp_p
     from qpnso.cli import main
 
     out = tmp_path / "fuzz.json"
-    main(["bench", "fuzz", "-n", "600", "--seed", "5", "--strategies", "fixed", "--solver-time-budget-ms", "1e-9",
-          "--out", str(out), "--quiet"])
+    main(
+        [
+            "bench",
+            "fuzz",
+            "-n",
+            "600",
+            "--seed",
+            "5",
+            "--strategies",
+            "fixed",
+            "--solver-time-budget-ms",
+            "1e-9",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     data = json.loads(out.read_text())
     assert data["config"]["solver_time_budget"] == pytest.approx(1e-12)
     assert data["deadline_ticks"] > 0
@@ -195,13 +237,18 @@ def test_seeded_closed_loop_fuzz_holds_every_line() -> None:
     ``run_fuzz(FuzzConfig(seed=13, first_episode=E, ticks=600))``; long runs: ``qpnso bench fuzz -n 1000000``."""
     # No timing assertion in the suite (a loaded CI machine is not this machine's class): the solver-time line
     # is counted, not held here; `qpnso bench fuzz` holds it (README).
-    report = run_fuzz(FuzzConfig(seed=13, ticks=TICKS, episode_seconds=20.0, max_seconds=600.0,
-                                 solve_time_max=float("inf")))
+    report = run_fuzz(
+        FuzzConfig(seed=13, ticks=TICKS, episode_seconds=20.0, max_seconds=600.0, solve_time_max=float("inf"))
+    )
     json.dumps(report.to_dict())
     assert set(report.by_strategy) == set(STRATEGIES) and set(report.counts) == set(CHECK_KEYS)
     assert report.probes > 50 and len(report.recovery) > 20 and report.drift_checked > 1000  # not vacuous
-    assert {k.split(" ")[0] for k in report.start_kinds} == {"uniform", "near_limit", "elbow_straight",
-                                                            "wrist_over_shoulder"}
+    assert {k.split(" ")[0] for k in report.start_kinds} == {
+        "uniform",
+        "near_limit",
+        "elbow_straight",
+        "wrist_over_shoulder",
+    }
     assert report.failures() == [], report.table()
 
 
@@ -211,11 +258,13 @@ def test_a_tick_slow_only_in_wall_time_counts_as_preempted(tool_robot) -> None:
     rep = FuzzReport(FuzzConfig())
     checker = TickChecker(tool_robot, rep.config, rep)
     q = tool_robot.sample_configuration()
-    checker.command(fake_command(tool_robot, q, solve_time=2e-3), q, WHERE, {"q": q}, cpu_time=3e-3,
-                    solver_cpu_time=1e-4)
+    checker.command(
+        fake_command(tool_robot, q, solve_time=2e-3), q, WHERE, {"q": q}, cpu_time=3e-3, solver_cpu_time=1e-4
+    )
     assert rep.counts["preempted"] == 1 and rep.counts["solve_time"] == 0
-    checker.command(fake_command(tool_robot, q, solve_time=2e-3), q, WHERE, {"q": q}, cpu_time=3e-3,
-                    solver_cpu_time=1.5e-3)
+    checker.command(
+        fake_command(tool_robot, q, solve_time=2e-3), q, WHERE, {"q": q}, cpu_time=3e-3, solver_cpu_time=1.5e-3
+    )
     assert rep.counts["preempted"] == 1 and rep.counts["solve_time"] == 1
     failures = rep.failures()
     assert len(failures) == 1 and failures[0].startswith("0 ticks over")  # the preempted line is not a must-hold

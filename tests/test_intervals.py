@@ -12,8 +12,8 @@ import pinocchio as pin
 import pytest
 
 from qpnso.elbow import arm_angle as E
-from qpnso.elbow import srs as S
 from qpnso.elbow import intervals as I
+from qpnso.elbow import srs as S
 from qpnso.errors import JointLimitError, RobotNotFoundError, SingularityError
 from qpnso.model.robot import Robot, friction_from_lists, load_robot
 
@@ -156,8 +156,10 @@ def test_panda_numerical_interval_ends_are_limit_crossings() -> None:
         assert interval.lo <= E.arm_angle(robot, q) <= interval.hi
         if interval.full_circle:
             continue
-        for end, cause, q_end in ((interval.lo, interval.lo_cause, interval.lo_q),
-                                  (interval.hi, interval.hi_cause, interval.hi_q)):
+        for end, cause, q_end in (
+            (interval.lo, interval.lo_cause, interval.lo_q),
+            (interval.hi, interval.hi_cause, interval.hi_q),
+        ):
             assert np.abs(robot.tool_pose(q_end).homogeneous - pose.homogeneous).max() < 1e-9
             assert abs(np.angle(np.exp(1j * (E.arm_angle(robot, q_end) - end)))) < 1e-9
             if cause.kind == "limit":

@@ -5,8 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from qpnso.linalg import (cholesky, cholesky_solve, dot, dynamically_consistent_projection, least_norm_line,
-                          matmul, matvec, nullspace_part)
+from qpnso.linalg import (
+    cholesky,
+    cholesky_solve,
+    dot,
+    dynamically_consistent_projection,
+    least_norm_line,
+    matmul,
+    matvec,
+    nullspace_part,
+)
 
 
 def _upper_only(M: np.ndarray) -> np.ndarray:

@@ -153,11 +153,17 @@ def test_summarize_run():
     theta = 0.5 * t
     pos = 0.1 * np.column_stack([np.cos(theta), np.sin(theta), np.zeros(n)])
     arrays = {
-        "t": t, "ns": ns, "interval_lo": np.full(n, -np.radians(60)), "interval_hi": np.full(n, np.radians(30)),
-        "rom_lo": np.full(n, -np.radians(50)), "rom_hi": np.full(n, np.radians(50)),
-        "tool_position": pos, "ref_position": pos + [0.001, 0, 0],
+        "t": t,
+        "ns": ns,
+        "interval_lo": np.full(n, -np.radians(60)),
+        "interval_hi": np.full(n, np.radians(30)),
+        "rom_lo": np.full(n, -np.radians(50)),
+        "rom_hi": np.full(n, np.radians(50)),
+        "tool_position": pos,
+        "ref_position": pos + [0.001, 0, 0],
         "tool_rotation_error": np.full(n, np.radians(0.5)),
-        "status": np.where(np.arange(n) % 4 == 0, 5, 0), "tick_time": np.full(n, 2e-4),
+        "status": np.where(np.arange(n) % 4 == 0, 5, 0),
+        "tick_time": np.full(n, 2e-4),
     }
     s = summarize_run(arrays, status_flags={"OK": 0, "QP_FAILED": 1, "ELBOW_DROPPED": 2, "ELBOW_SLACK": 4})
     assert s["ticks"] == n and s["duration_s"] == pytest.approx(3.99)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import ALL_ROBOTS
 
 import qpnso
-from conftest import ALL_ROBOTS
 
 
 @pytest.mark.parametrize("name", ALL_ROBOTS)
@@ -59,12 +59,15 @@ def test_tool_offset_is_applied_in_the_flange_frame(lwr, rng) -> None:
     assert np.allclose(tool.rotation, flange.rotation, atol=1e-12)
 
 
-@pytest.mark.parametrize("bad, match", [
-    (np.zeros(6), r"shape \(7,\)"),
-    (np.full(7, np.nan), "NaN"),
-    ([0, 0, 0, np.inf, 0, 0, 0], "NaN or inf at index \\[3\\]"),
-    ("abc", "numeric"),
-])
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (np.zeros(6), r"shape \(7,\)"),
+        (np.full(7, np.nan), "NaN"),
+        ([0, 0, 0, np.inf, 0, 0, 0], "NaN or inf at index \\[3\\]"),
+        ("abc", "numeric"),
+    ],
+)
 def test_bad_q_is_rejected_with_a_clear_error(lwr, bad, match) -> None:
     with pytest.raises(qpnso.InputError, match=match):
         lwr.tool_pose(bad)

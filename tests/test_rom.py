@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from qpnso.errors import ConfigError, InputError
 from qpnso.elbow.intervals import Interval
 from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
+from qpnso.errors import ConfigError, InputError
 
 D = math.radians
 

@@ -131,8 +131,7 @@ def test_non_finite_qp_data_never_reach_the_solver() -> None:
     assert "non-finite" in result.levels[0].message and result.levels[0].iterations == 0
 
 
-@pytest.mark.parametrize("where", ["tool_pose", "ns0", "complex_q", "complex_twist", "tool_pose_type",
-                                   "text_q", "dq"])
+@pytest.mark.parametrize("where", ["tool_pose", "ns0", "complex_q", "complex_twist", "tool_pose_type", "text_q", "dq"])
 def test_bad_inputs_raise_input_error_naming_them(robot, controllers, where: str) -> None:
     ctrl = controllers["damped"]
     ctrl.reset(Q1)
@@ -174,8 +173,10 @@ def test_held_tool_does_not_drift_while_the_elbow_returns(robot, controllers) ->
         outside += bool(cmd.status & Status.ELBOW_OUTSIDE_ROM)
         q = q + ctrl.config.dt * cmd.dq
         now = tool_pose(robot, q)
-        worst = (max(worst[0], np.linalg.norm(now.translation - start.translation)),
-                 max(worst[1], np.linalg.norm(pin.log3(now.rotation @ start.rotation.T))))
+        worst = (
+            max(worst[0], np.linalg.norm(now.translation - start.translation)),
+            max(worst[1], np.linalg.norm(pin.log3(now.rotation @ start.rotation.T))),
+        )
     assert outside > 100  # the excursion was flagged while it lasted (the test is not vacuous) ...
     assert worst[0] < 1e-6 and worst[1] < 1e-6
 
@@ -223,8 +224,7 @@ def test_after_a_fallback_daqp_alone_answers_for_the_hold_then_proxqp_again() ->
     A, b = rng.normal(size=(6, 7)), rng.normal(size=6)
     lb, ub = -np.full(7, 10.0), np.full(7, 10.0)
     hold = 3
-    qp = HierarchicalQP(7, settings=QPSettings(max_iter=1, max_iter_in=1, line_fast_path=False,
-                                               active_set_hold=hold))
+    qp = HierarchicalQP(7, settings=QPSettings(max_iter=1, max_iter_in=1, line_fast_path=False, active_set_hold=hold))
     messages = []
     for _ in range(hold + 2):
         result = qp.solve([Level(A=A, b=b)], lb, ub)
@@ -232,7 +232,7 @@ def test_after_a_fallback_daqp_alone_answers_for_the_hold_then_proxqp_again() ->
         np.testing.assert_allclose(result.x, np.linalg.pinv(A) @ b, atol=1e-12)
         messages.append(result.levels[0].message)
     assert messages[0].startswith("proxsuite") and messages[0].endswith("daqp")  # failed, then DAQP
-    assert messages[1:hold + 1] == ["daqp"] * hold  # the hold: DAQP alone
+    assert messages[1 : hold + 1] == ["daqp"] * hold  # the hold: DAQP alone
     assert messages[hold + 1].startswith("proxsuite")  # ProxQP tries again (and fails in 1 iteration)
     assert qp.stats.active_set_fallbacks == hold + 2
 
@@ -242,7 +242,9 @@ def test_no_hold_means_proxqp_every_solve() -> None:
     A, b = rng.normal(size=(6, 7)), rng.normal(size=6)
     qp = HierarchicalQP(7, settings=QPSettings(max_iter=1, max_iter_in=1, line_fast_path=False, active_set_hold=0))
     for _ in range(3):
-        assert qp.solve([Level(A=A, b=b)], -np.full(7, 10.0), np.full(7, 10.0)).levels[0].message.startswith("proxsuite")
+        assert (
+            qp.solve([Level(A=A, b=b)], -np.full(7, 10.0), np.full(7, 10.0)).levels[0].message.startswith("proxsuite")
+        )
     with pytest.raises(qpnso.ConfigError, match="active_set_hold"):
         QPSettings(active_set_hold=-1)
 
@@ -257,8 +259,9 @@ def test_active_set_solve_matches_a_closed_form() -> None:
 def test_general_cascade_answer_does_not_depend_on_the_warm_start(robot) -> None:
     """Level 1 alone off the line fast path: the least-norm point of its optimal set, whatever was
     solved before (a warm start once left an arbitrary null-space component)."""
-    J = pin.computeFrameJacobian(robot.model, robot.model.createData(), Q1, robot.tool_frame_id,
-                                 pin.LOCAL_WORLD_ALIGNED)
+    J = pin.computeFrameJacobian(
+        robot.model, robot.model.createData(), Q1, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED
+    )
     b = np.array([0.01, 0, 0, 0, 0, 0])
     lb, ub = -robot.dq_max, robot.dq_max
     qp = HierarchicalQP(7, settings=QPSettings(line_fast_path=False))
@@ -274,8 +277,9 @@ def test_a_spent_time_budget_stops_the_cascade_before_level_2_and_holds_the_tool
     """``time_budget`` (item 9's deadline): once spent, no lower level starts; level 1's answer stands as
     the least-norm point of its optimal set (the pseudo-inverse, computed apart), the level reported
     ``TIME_BUDGET``; an ample budget changes nothing."""
-    J = pin.computeFrameJacobian(robot.model, robot.model.createData(), Q1, robot.tool_frame_id,
-                                 pin.LOCAL_WORLD_ALIGNED)
+    J = pin.computeFrameJacobian(
+        robot.model, robot.model.createData(), Q1, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED
+    )
     b = np.array([0.01, 0, 0, 0, 0, 0])
     lb, ub = -robot.dq_max, robot.dq_max
     levels = [Level(A=J, b=b), Level(g=np.ones(7)), Level(g=-np.ones(7))]
@@ -284,8 +288,7 @@ def test_a_spent_time_budget_stops_the_cascade_before_level_2_and_holds_the_tool
     assert free.ok and not free.out_of_time
     cut = qp.solve(levels, lb, ub, time_budget=1e-12)
     assert not cut.ok and cut.out_of_time and cut.failed_level == 1
-    assert [level.status for level in cut.levels] == [LevelStatus.SOLVED, LevelStatus.TIME_BUDGET,
-                                                      LevelStatus.SKIPPED]
+    assert [level.status for level in cut.levels] == [LevelStatus.SOLVED, LevelStatus.TIME_BUDGET, LevelStatus.SKIPPED]
     assert "time budget" in cut.status
     np.testing.assert_allclose(cut.x, np.linalg.pinv(J) @ b, atol=1e-9)
     assert np.linalg.norm(free.x - cut.x) > 1e-3  # level 2 did move the answer when it ran
@@ -310,8 +313,9 @@ def test_a_controller_out_of_time_holds_the_tool_and_says_so(robot) -> None:
     assert cut.status & Status.QP_DEADLINE and cut.status & Status.QP_FAILED and not cut.ok
     assert not full.status & Status.QP_DEADLINE and full.ok
     assert "time budget" in cut.message
-    J = pin.computeFrameJacobian(robot.model, robot.model.createData(), Q1, robot.tool_frame_id,
-                                 pin.LOCAL_WORLD_ALIGNED)
+    J = pin.computeFrameJacobian(
+        robot.model, robot.model.createData(), Q1, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED
+    )
     np.testing.assert_allclose(J @ cut.dq, J @ full.dq, atol=1e-9)
     np.testing.assert_allclose(J @ cut.dq, twist, atol=1e-6)  # the twist, up to the second-order term
     np.testing.assert_allclose(cut.dq, np.linalg.pinv(J) @ (J @ full.dq), atol=1e-9)
@@ -360,8 +364,11 @@ def test_fast_null_space_motion_does_not_drag_the_held_tool(robot) -> None:
     for c in cmds:
         q = q + ctrl.config.dt * c.dq
         now = tool_pose(robot, q)
-        worst = max(worst, np.linalg.norm(now.translation - start.translation),
-                    np.linalg.norm(pin.log3(now.rotation @ start.rotation.T)))
+        worst = max(
+            worst,
+            np.linalg.norm(now.translation - start.translation),
+            np.linalg.norm(pin.log3(now.rotation @ start.rotation.T)),
+        )
     assert worst < 1e-6, worst
 
 
@@ -378,8 +385,7 @@ def test_a_checked_pose_is_c_ordered(robot) -> None:
 def test_finish_command_by_hand() -> None:
     """The last step of every tick on hand values: dq clipped to ±dq_max with q_des following, τ saturated
     (a limit of 0 means none given), the ROM excursion flagged, a NaN replaced by the stop command."""
-    from qpnso.control.tick import (FLAG_ELBOW_OUTSIDE_ROM, FLAG_INTERNAL_ERROR, FLAG_TORQUE_SATURATED,
-                            finish_command)
+    from qpnso.control.tick import FLAG_ELBOW_OUTSIDE_ROM, FLAG_INTERNAL_ERROR, FLAG_TORQUE_SATURATED, finish_command
 
     q, dq_max, tau_limit, g = np.zeros(3), np.array([1.0, 1.0, 1.0]), np.array([10.0, 0.0, 10.0]), np.ones(3)
     dq, tau = np.array([1.5, -0.5, -2.0]), np.array([12.0, 50.0, -3.0])
@@ -412,9 +418,9 @@ def test_sanitize_state_by_hand(robot, controllers) -> None:
     flat[o[4] + 2] = np.nan  # a cost-gradient entry
     flat[o[5]] = np.inf  # the arm angle
     assert sanitize_state(flat, o) == COST_UNDEFINED_BIT
-    np.testing.assert_array_equal(flat[o[3]:o[5]], 0.0)
-    np.testing.assert_array_equal(flat[o[5]:o[8]], 0.0)  # wrist sine 0: singular
-    np.testing.assert_array_equal(flat[:o[3]], clean[:o[3]])
+    np.testing.assert_array_equal(flat[o[3] : o[5]], 0.0)
+    np.testing.assert_array_equal(flat[o[5] : o[8]], 0.0)  # wrist sine 0: singular
+    np.testing.assert_array_equal(flat[: o[3]], clean[: o[3]])
     flat[o[9]] = np.nan  # gravity
     assert sanitize_state(flat, o) & INTERNAL_ERROR_BIT
 
@@ -431,8 +437,9 @@ def test_an_unexpected_exception_stops_the_joints_and_says_why(robot, monkeypatc
     assert cmd.status & Status.INTERNAL_ERROR and not cmd.ok and "RuntimeError: boom" in cmd.message
     np.testing.assert_array_equal(cmd.dq, 0.0)
     np.testing.assert_array_equal(cmd.q_des, Q1)
-    np.testing.assert_allclose(cmd.tau, pin.computeGeneralizedGravity(robot.model, robot.model.createData(), Q1),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        cmd.tau, pin.computeGeneralizedGravity(robot.model, robot.model.createData(), Q1), atol=1e-9
+    )
 
 
 def _held_tool_worst_error(robot, config: ControllerConfig, q0: np.ndarray, ticks: int = 100) -> float:

@@ -49,6 +49,7 @@ def test_stiff_friction_is_stable_at_the_control_rate(lwr) -> None:
     hand = HandModel(stiffness=0.0, damping=0.0, rotational_stiffness=0.0, rotational_damping=0.0)
     tool = _tool_state(model, data, q, dq, lwr.tool_frame_id)
     ref = (tool[0], tool[1], np.zeros(3), np.zeros(3))
+
     def kinetic(q, dq):
         return pin.computeKineticEnergy(model, model.createData(), q, dq)
 

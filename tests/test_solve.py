@@ -8,8 +8,8 @@ import pytest
 
 import qpnso
 from qpnso.control import trajectory as tr
-from qpnso.lab.scenarios import load_scenario, simulate_scenario
 from qpnso.control.offline import RESULT_KEYS, initial_configuration, load_config, solve_trajectory
+from qpnso.lab.scenarios import load_scenario, simulate_scenario
 
 POSE = pin.SE3(pin.rpy.rpyToMatrix(np.pi, np.radians(30), np.pi), np.array([0.65, 0.0, 0.5]))
 
@@ -119,8 +119,9 @@ def test_scenario_file_missing_key_is_named(tmp_path) -> None:
 
 
 def test_simulation_settings_override_the_scenario_and_strategy_wins() -> None:
-    run = simulate_scenario("B", "damped", duration_scale=0.05 / 36.0, settings={"rom_half_width_deg": 30.0,
-                                                                                  "strategy": "qp"})
+    run = simulate_scenario(
+        "B", "damped", duration_scale=0.05 / 36.0, settings={"rom_half_width_deg": 30.0, "strategy": "qp"}
+    )
     # ROM_t's upper end is ns0 + 30° (the interval's end, minus the margin, is farther)
     assert np.isclose(np.degrees(run.arrays["rom_hi"][0]), -90.0 + 30.0, atol=1e-6)
     assert np.all(run.arrays["stiffness"] == 0.0)  # damped applies no stiffness: strategy argument won

@@ -10,12 +10,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from qpnso.errors import InputError
 from qpnso.lab import solver_bench as sb
 from qpnso.lab.solver_bench import metrics as sb_metrics
 from qpnso.lab.solver_bench import problems as sb_problems
 from qpnso.lab.solver_bench import record as sb_record
 from qpnso.lab.solver_bench import runs as sb_runs
-from qpnso.errors import InputError
 
 INF = math.inf
 
@@ -26,10 +26,23 @@ def hand_qp(**changes) -> sb.BenchProblem:
     By hand: x* = (0.5, 1.5), cost −2.75; row dual z = 0.5 (upper side), box dual
     z_box = (1, 0) (x₁ at its upper bound): Px + q + Cᵀz + z_box = 0.
     """
-    fields = dict(name="hand", sequence="hand", level=2, tick=0, P=np.eye(2), q=np.array([-2.0, -2.0]),
-                  C=np.array([[1.0, 1.0]]), l=np.array([-INF]), u=np.array([2.0]),
-                  box_l=np.array([-1.0, -1.0]), box_u=np.array([0.5, 5.0]), x_prev=np.zeros(2), Z=np.eye(2),
-                  ref_v=np.array([0.5, 1.5]), ref_obj=-2.75)
+    fields = dict(
+        name="hand",
+        sequence="hand",
+        level=2,
+        tick=0,
+        P=np.eye(2),
+        q=np.array([-2.0, -2.0]),
+        C=np.array([[1.0, 1.0]]),
+        l=np.array([-INF]),
+        u=np.array([2.0]),
+        box_l=np.array([-1.0, -1.0]),
+        box_u=np.array([0.5, 5.0]),
+        x_prev=np.zeros(2),
+        Z=np.eye(2),
+        ref_v=np.array([0.5, 1.5]),
+        ref_obj=-2.75,
+    )
     fields.update(changes)
     return sb.BenchProblem(**fields)
 
@@ -55,8 +68,13 @@ def test_missing_solution_or_dual_gives_infinite_residuals():
 
 
 def test_standard_form_splits_two_sided_rows_equalities_and_an_infinite_box():
-    p = hand_qp(C=np.array([[1.0, 1.0], [1.0, -1.0], [0.0, 1.0]]), l=np.array([-INF, -1.0, -3.0]),
-                u=np.array([2.0, -1.0, 3.0]), box_l=np.array([-1.0, -INF]), box_u=np.array([0.5, INF]))
+    p = hand_qp(
+        C=np.array([[1.0, 1.0], [1.0, -1.0], [0.0, 1.0]]),
+        l=np.array([-INF, -1.0, -3.0]),
+        u=np.array([2.0, -1.0, 3.0]),
+        box_l=np.array([-1.0, -INF]),
+        box_u=np.array([0.5, INF]),
+    )
     sf = sb.standard_form(p)
     prob = sf.problem
     # rows: x1+x2 ≤ 2, x2 ≤ 3, −x2 ≤ 3, box x1 ≤ 0.5, −x1 ≤ 1 (folded: the box has an infinite side)
@@ -118,11 +136,33 @@ def test_infeasible_problem_and_crashing_solver_are_failures_with_status(monkeyp
 def test_inaccurate_answer_is_a_failure():
     p = hand_qp()
     strict = sb.BenchSettings("strict", 1e-9, 1e-9)
-    o = sb_runs._outcome(p, sb.standard_form(p), strict, "x", True, "found", 1e-5,
-                         np.array([0.5, 1.5 + 1e-4]), None, np.array([0.5]), np.array([1.0, 0.0]))
+    o = sb_runs._outcome(
+        p,
+        sb.standard_form(p),
+        strict,
+        "x",
+        True,
+        "found",
+        1e-5,
+        np.array([0.5, 1.5 + 1e-4]),
+        None,
+        np.array([0.5]),
+        np.array([1.0, 0.0]),
+    )
     assert not o.success and o.status == "inaccurate: primal/dual/gap"
-    slow = sb_runs._outcome(p, sb.standard_form(p), strict, "x", True, "found", 1.0,
-                            np.array([0.5, 1.5]), None, np.array([0.5]), np.array([1.0, 0.0]))
+    slow = sb_runs._outcome(
+        p,
+        sb.standard_form(p),
+        strict,
+        "x",
+        True,
+        "found",
+        1.0,
+        np.array([0.5, 1.5]),
+        None,
+        np.array([0.5]),
+        np.array([1.0, 0.0]),
+    )
     assert not slow.success and slow.status == "timeout"
 
 
@@ -132,7 +172,7 @@ def test_summary_csv_columns(tmp_path):
     path = sb_metrics.write_results_csv(rows, tmp_path / "results.csv")
     with open(path) as f:
         header = next(csv.reader(f))
-    assert tuple(header[:len(sb.CSV_COLUMNS)]) == sb.CSV_COLUMNS
+    assert tuple(header[: len(sb.CSV_COLUMNS)]) == sb.CSV_COLUMNS
     assert len(rows) == 2 * len({o.solver for o in outcomes})
     assert min(r["runtime_sgm"] for r in rows if r["settings"] == "default") == pytest.approx(1.0)
 
@@ -141,10 +181,10 @@ def test_summary_csv_columns(tmp_path):
 @pytest.fixture(scope="module")
 def recorded():
     """A short run of the shipped controller (native ProxSuite, μ = 0) with the tool moving."""
-    from qpnso.control.controller import Controller
     from qpnso.control.config import ControllerConfig
-    from qpnso.model.robot import load_robot
+    from qpnso.control.controller import Controller
     from qpnso.lab.scenarios import load_scenario
+    from qpnso.model.robot import load_robot
 
     sc = load_scenario("A")
     robot = load_robot(sc.robot)
@@ -211,8 +251,7 @@ def test_committed_quick_set_matches_the_controller():
 def test_closed_loop_and_report(recorded, tmp_path):
     sb.compute_reference(recorded[:4])
     path = sb.save_problems(tmp_path / "tiny.npz", recorded[:4], {"regularization": 0.0})
-    report = sb.run_solver_benchmark(tmp_path / "out", quick=True, solvers=["proxsuite", "daqp", "nope"],
-                                     problems=path)
+    report = sb.run_solver_benchmark(tmp_path / "out", quick=True, solvers=["proxsuite", "daqp", "nope"], problems=path)
     text = report.read_text()
     assert "`nope`" in text and "| proxsuite | default |" in text and "## Closed loop" in text
     with open(tmp_path / "out" / "closed_loop.csv") as f:

@@ -9,9 +9,9 @@ import pinocchio as pin
 import pytest
 
 import qpnso
+from qpnso.control.state import PREDICTION_DAMPING, StateEvaluator, state_views
 from qpnso.elbow import arm_angle as E
 from qpnso.model.costs import CostModel, CostWeights
-from qpnso.control.state import PREDICTION_DAMPING, StateEvaluator, state_views
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +21,7 @@ def evaluator() -> StateEvaluator:
 
 
 def test_every_field_matches_its_independent_computation(evaluator, rng) -> None:
-    robot, cost = evaluator.robot, CostModel(evaluator.robot, CostWeights(mass=1.0, friction_force=0.5),
-                                             compile="off")
+    robot, cost = evaluator.robot, CostModel(evaluator.robot, CostWeights(mass=1.0, friction_force=0.5), compile="off")
     data = robot.model.createData()
     checked = 0
     while checked < 10:
@@ -58,7 +57,7 @@ def test_every_field_matches_its_independent_computation(evaluator, rng) -> None
         np.testing.assert_allclose(moving.tool_drift, (jac[0] - jac[1]) @ dq / 2e-6, atol=1e-7)  # central difference
         twist = rng.normal(size=6)  # this tick's twist: the drift is along dq with its tool part replaced
         J = robot.jacobian(q)
-        predicted = dq + J.T @ np.linalg.solve(J @ J.T + PREDICTION_DAMPING ** 2 * np.eye(6), twist - J @ dq)
+        predicted = dq + J.T @ np.linalg.solve(J @ J.T + PREDICTION_DAMPING**2 * np.eye(6), twist - J @ dq)
         pin.forwardKinematics(robot.model, data, q, predicted, np.zeros(7))
         a = pin.getFrameClassicalAcceleration(robot.model, data, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED)
         np.testing.assert_allclose(evaluator(q, dq, twist).tool_drift, a.vector, atol=1e-12)
@@ -75,6 +74,8 @@ def test_fields_are_views_of_one_array_and_raw_is_the_same_state(evaluator) -> N
     again = evaluator.state(q, flat.copy())
     for a, b in ((s.jacobian, again.jacobian), (s.mass_matrix, again.mass_matrix), (s.gravity, again.gravity)):
         np.testing.assert_array_equal(a, b)
-    assert flat is evaluator.raw(q + 0.01, np.zeros(7), np.zeros(6))  # the evaluator's buffer, overwritten by the next call
+    assert flat is evaluator.raw(
+        q + 0.01, np.zeros(7), np.zeros(6)
+    )  # the evaluator's buffer, overwritten by the next call
     views = state_views(flat, evaluator.offsets)
     assert len(views) == len(evaluator.offsets)  # ten parts; the two singularity measures come apart

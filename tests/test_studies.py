@@ -9,10 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from qpnso.model.costs import CostModel, CostWeights
 from qpnso.errors import ConfigError
-from qpnso.lab.parallel import CHECKPOINT, JobError, RunSpec, job_rng, run_jobs
 from qpnso.lab import studies
+from qpnso.lab.parallel import CHECKPOINT, JobError, RunSpec, job_rng, run_jobs
 from qpnso.lab.studies import (
     SelfMotionCurve,
     StudyOptions,
@@ -25,6 +24,7 @@ from qpnso.lab.studies import (
     weighted_objective,
     workbench,
 )
+from qpnso.model.costs import CostModel, CostWeights
 
 
 @pytest.fixture(scope="module")
@@ -119,8 +119,9 @@ def test_extremum_matches_dense_sampling(bench, seed):
                 assert np.all(near >= sign * ext.value - 1e-12 * abs(ext.value))
             assert curve.interval.lo - 1e-12 <= ext.ns <= curve.interval.hi + 1e-12
             bench.robot.check_q(ext.q, tol=1e-9)  # the optimum respects the joint limits
-            np.testing.assert_allclose(bench.robot.tool_pose(ext.q).homogeneous,
-                                       bench.robot.tool_pose(q0).homogeneous, atol=1e-9)  # tool held
+            np.testing.assert_allclose(
+                bench.robot.tool_pose(ext.q).homogeneous, bench.robot.tool_pose(q0).homogeneous, atol=1e-9
+            )  # tool held
 
 
 # ---------------------------------------------------------------- runner
@@ -197,7 +198,9 @@ def test_workspace_study_deterministic_and_complete(tmp_path):
     csv = (tmp_path / "w1" / "results.csv").read_text().splitlines()
     assert len(csv) == 7 and "mass_reduction_pct" in csv[0]
     for r in _results(tmp_path / "w1"):  # the paper's definition, from the stored extrema
-        assert r["mass_reduction_pct"] == pytest.approx((r["mass_at_max_kg"] - r["mass_at_min_kg"]) / r["mass_at_max_kg"] * 100)
+        assert r["mass_reduction_pct"] == pytest.approx(
+            (r["mass_at_max_kg"] - r["mass_at_min_kg"]) / r["mass_at_max_kg"] * 100
+        )
         assert r["friction_at_min_N"] <= r["friction_force_start_N"] <= r["friction_at_max_N"]
     other = run_study("workspace", tmp_path / "w3", n=6, seed=5, workers=1)
     assert other["mass_reduction_pct"] != one["mass_reduction_pct"]

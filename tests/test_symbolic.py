@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import ALL_ROBOTS
 
 import qpnso
-from conftest import ALL_ROBOTS
 
 
 @pytest.mark.parametrize("name", ALL_ROBOTS)
@@ -17,10 +17,16 @@ def test_symbolic_model_matches_pinocchio(name: str, rng) -> None:
     robot = qpnso.load_robot(name, tool_offset=offset)
     sym = qpnso.SymbolicModel(robot.model)
     tool = sym.frame_placement(robot.tool_frame_id)
-    fn = sym.function("check", {
-        "R": tool.R, "p": tool.p, "J": sym.frame_jacobian(robot.tool_frame_id), "A": sym.mass_matrix(),
-        "g": sym.gravity_torque(),
-    })
+    fn = sym.function(
+        "check",
+        {
+            "R": tool.R,
+            "p": tool.p,
+            "J": sym.frame_jacobian(robot.tool_frame_id),
+            "A": sym.mass_matrix(),
+            "g": sym.gravity_torque(),
+        },
+    )
     worst = 0.0
     for _ in range(50):
         q = robot.random_q(rng)
@@ -44,8 +50,14 @@ def test_gravity_is_the_gradient_of_the_potential_energy(lwr, rng) -> None:
     data = lwr.model.createData()
     q = lwr.random_q(rng)
     h = 1e-6
-    fd = [(pin.computePotentialEnergy(lwr.model, data, q + h * e) - pin.computePotentialEnergy(lwr.model, data, q - h * e))
-          / (2 * h) for e in np.eye(7)]
+    fd = [
+        (
+            pin.computePotentialEnergy(lwr.model, data, q + h * e)
+            - pin.computePotentialEnergy(lwr.model, data, q - h * e)
+        )
+        / (2 * h)
+        for e in np.eye(7)
+    ]
     g = np.array(fn(q=q)["g"]).ravel()
     assert np.abs(g).max() > 1.0  # the arm does weigh something
     np.testing.assert_allclose(g, fd, rtol=0, atol=1e-6)

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 import qpnso
 from qpnso.control import tick
-from qpnso.control.controller import Controller
 from qpnso.control.config import ControllerConfig, Status
+from qpnso.control.controller import Controller
 from qpnso.qp import LevelStatus
 from qpnso.qp.backends import _Raw
 
@@ -42,6 +42,7 @@ def count_compiled(ctrl: Controller, monkeypatch) -> list[int]:
         out = original(*args)
         hits[0] += type(out) is qpnso.Command
         return out
+
     monkeypatch.setattr(ctrl, "_compiled", spy)
     return hits
 
@@ -178,8 +179,17 @@ def test_elbow_advance_unwraps_the_arm_angle_and_ages_the_interval() -> None:
 def test_elbow_bounds_are_the_shifted_interval_clipped_and_the_sigmoid() -> None:
     rng = np.random.default_rng(5)
     cfg = qpnso.ElbowConfig(half_width_deg=50, safety_margin_deg=10)
-    params = tick.elbow_parameters(cfg.half_width_rad, cfg.safety_margin_rad, cfg.stiffness_min, cfg.stiffness_max,
-                                   cfg.alpha_per_rad, cfg.d_rad, 0.1, 0.01, 10)
+    params = tick.elbow_parameters(
+        cfg.half_width_rad,
+        cfg.safety_margin_rad,
+        cfg.stiffness_min,
+        cfg.stiffness_max,
+        cfg.alpha_per_rad,
+        cfg.d_rad,
+        0.1,
+        0.01,
+        10,
+    )
     for _ in range(300):
         lo = rng.uniform(-4, 4)
         hi = lo + rng.uniform(0.1, 6.0)
@@ -189,8 +199,11 @@ def test_elbow_bounds_are_the_shifted_interval_clipped_and_the_sigmoid() -> None
         turns = int(rng.integers(-3, 4))
         ns = rng.uniform(lo, hi) + 2 * np.pi * turns
         ns0 = ns + rng.uniform(-1.5, 1.5)
-        interval = qpnso.Interval(ns - np.pi, ns + np.pi, True) if full else \
-            qpnso.Interval(lo + 2 * np.pi * turns, hi + 2 * np.pi * turns, False)
+        interval = (
+            qpnso.Interval(ns - np.pi, ns + np.pi, True)
+            if full
+            else qpnso.Interval(lo + 2 * np.pi * turns, hi + 2 * np.pi * turns, False)
+        )
         expected = qpnso.clip_rom(ns0, cfg.half_width_rad, interval, cfg.safety_margin_rad)
         rom_lo, rom_hi, empty, iv_lo, iv_hi, k = tick.elbow_bounds(ns, memory, ns0, params)
         assert (iv_lo, iv_hi) == pytest.approx((interval.lo, interval.hi), abs=1e-12)
@@ -205,8 +218,15 @@ def test_answer_bits_are_the_status_flags() -> None:
     assert Status(tick.answer_bits(1e-3, 0.0)) == Status.TOOL_LIMITED
     assert Status(tick.answer_bits(0.0, 1e-2)) == Status.ELBOW_SLACK
     assert tick.answer_bits(-1.0, -1.0) == 0
-    for name in ("QP_FAILED", "ELBOW_DROPPED", "ELBOW_SLACK", "ROM_EMPTY", "Q_OUT_OF_LIMITS", "INTERVAL_STALE",
-                 "TOOL_LIMITED"):
+    for name in (
+        "QP_FAILED",
+        "ELBOW_DROPPED",
+        "ELBOW_SLACK",
+        "ROM_EMPTY",
+        "Q_OUT_OF_LIMITS",
+        "INTERVAL_STALE",
+        "TOOL_LIMITED",
+    ):
         assert Status[name].value == getattr(tick, f"FLAG_{name}")
 
 
@@ -262,8 +282,9 @@ def test_failed_level_two_holds_the_tool_as_the_general_path_does(robot, monkeyp
     for ctrl in (fast, slow):
         ctrl.reset(Q0)
         backend = ctrl.qp._backend
-        monkeypatch.setattr(backend, "solve_arrays",
-                            lambda *args: _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE"))
+        monkeypatch.setattr(
+            backend, "solve_arrays", lambda *args: _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE")
+        )
     failures = fast.qp.stats.failures
     a, b = fast.step(Q0), slow.step(Q0)
     assert a.status & Status.QP_FAILED and not a.ok
@@ -290,8 +311,11 @@ def test_non_finite_level_two_answer_holds_the_tool(robot, monkeypatch) -> None:
     fast, slow = pair(robot)
     for ctrl in (fast, slow):
         ctrl.reset(Q0)
-        monkeypatch.setattr(ctrl.qp._backend, "solve_arrays",
-                            lambda *args: _Raw(np.array([np.nan, 0.0]), LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED"))
+        monkeypatch.setattr(
+            ctrl.qp._backend,
+            "solve_arrays",
+            lambda *args: _Raw(np.array([np.nan, 0.0]), LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED"),
+        )
     a, b = fast.step(Q0), slow.step(Q0)
     assert a.status & Status.QP_FAILED and "non-finite" in a.message and "tool held" in a.message
     assert np.all(np.isfinite(a.dq)) and np.all(np.isfinite(a.tau))
@@ -306,8 +330,10 @@ def test_interval_that_cannot_be_renewed_is_flagged_stale_on_both_paths(robot, m
     q = Q0.copy()
     for k in range(40):
         if k == 5:  # from here on the interval cannot be computed: the last one stands, flagged
+
             def singular(*args):
                 raise qpnso.SingularityError("test: no interval")
+
             monkeypatch.setattr(qpnso.control.controller, "continuity_interval", singular)
         a, b = fast.step(q, tool_twist=twist), slow.step(q, tool_twist=twist)
         assert_same(a, b, tol=1e-11)
@@ -332,8 +358,11 @@ def test_mis_shaped_level_two_answer_holds_the_tool(robot, monkeypatch) -> None:
     fast, slow = pair(robot)
     for ctrl in (fast, slow):
         ctrl.reset(Q0)
-        monkeypatch.setattr(ctrl.qp._backend, "solve_arrays",
-                            lambda *args: _Raw(np.zeros(3), LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED"))
+        monkeypatch.setattr(
+            ctrl.qp._backend,
+            "solve_arrays",
+            lambda *args: _Raw(np.zeros(3), LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED"),
+        )
     a, b = fast.step(Q0), slow.step(Q0)
     assert a.status & Status.QP_FAILED and "mis-shaped" in a.message and "tool held" in a.message
     assert_same(a, b)
@@ -363,9 +392,22 @@ def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
     from qpnso.control import state
     from qpnso.elbow import rom
 
-    kernels = [tick.qp_tick, tick.qp_tick_answer, tick.qp_command, tick.arm_angle_singular, tick.limits_status, tick.max_abs_difference,
-               tick.elbow_advance, tick.elbow_bounds, state.state_views, rom.clipped_bounds, linalg.least_norm_line,
-               line.task_line, line.least_norm_point, line.checked_line_answer]
+    kernels = [
+        tick.qp_tick,
+        tick.qp_tick_answer,
+        tick.qp_command,
+        tick.arm_angle_singular,
+        tick.limits_status,
+        tick.max_abs_difference,
+        tick.elbow_advance,
+        tick.elbow_bounds,
+        state.state_views,
+        rom.clipped_bounds,
+        linalg.least_norm_line,
+        line.task_line,
+        line.least_norm_point,
+        line.checked_line_answer,
+    ]
     before = [len(k.signatures) for k in kernels]
     ctrl.reset(Q0)
     wide = np.tile(Q0[:, None], (1, 3))  # a column of it is a strided view

@@ -10,7 +10,6 @@ import pinocchio as pin
 import pytest
 from scipy.spatial.transform import Rotation
 
-from qpnso.errors import TrajectoryError
 from qpnso.control.trajectory import (
     COLUMNS,
     PARABOLA_AXES,
@@ -22,6 +21,7 @@ from qpnso.control.trajectory import (
     read_csv,
     write_csv,
 )
+from qpnso.errors import TrajectoryError
 
 DOWN = pin.utils.rotate("x", np.pi)  # tool z-axis pointing down
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "trajectories"
@@ -60,14 +60,22 @@ def test_validation_normalises_and_fixes_signs():
     traj = Trajectory(np.arange(4.0), np.zeros((4, 3)), q)
     np.testing.assert_allclose(np.linalg.norm(traj.quaternion, axis=1), 1.0, atol=1e-15)
     assert np.all(np.einsum("ij,ij->i", traj.quaternion[1:], traj.quaternion[:-1]) > 0)
-    np.testing.assert_allclose(Rotation.from_quat(traj.quaternion).as_matrix(),
-                               Rotation.from_quat(q).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        Rotation.from_quat(traj.quaternion).as_matrix(), Rotation.from_quat(q).as_matrix(), atol=1e-12
+    )
 
 
-@pytest.mark.parametrize("case, pattern", [
-    ("unsorted", "row 3"), ("repeated", "row 3.*repeats"), ("nan", "row 2 is not finite"),
-    ("norm", "row 4 has norm"), ("short", "at least 2"), ("shape", r"shape \(N, 3\)"),
-])
+@pytest.mark.parametrize(
+    "case, pattern",
+    [
+        ("unsorted", "row 3"),
+        ("repeated", "row 3.*repeats"),
+        ("nan", "row 2 is not finite"),
+        ("norm", "row 4 has norm"),
+        ("short", "at least 2"),
+        ("shape", r"shape \(N, 3\)"),
+    ],
+)
 def test_validation_errors_name_the_row(case, pattern):
     t, p, q = np.arange(5.0), np.zeros((5, 3)), np.tile([0, 0, 0, 1.0], (5, 1))
     if case == "unsorted":
@@ -110,22 +118,25 @@ HEADER = "t,x,y,z,qx,qy,qz,qw\n"
 GOOD = "0,0,0,0,0,0,0,1\n"
 
 
-@pytest.mark.parametrize("text, pattern", [
-    ("", "empty file"),
-    ("t,x,y,z,qx,qy,qw\n" + GOOD, "missing column.*'qz'"),
-    (HEADER.replace("qw", "qw,speed") + "0,0,0,0,0,0,0,1,3\n", "unknown column 'speed'"),
-    ("t,x,y,z,qx,qy,qz,qw,x\n", "'x' appears more than once"),
-    (HEADER + GOOD + "0.1,0,abc,0,0,0,0,1\n", "data row 2, column 'y': cannot parse 'abc'"),
-    (HEADER + GOOD + "0.1,0,0,nan,0,0,0,1\n", "data row 2, column 'z'.*not finite"),
-    (HEADER + GOOD + "0.1,inf,0,0,0,0,0,1\n", "data row 2, column 'x'.*not finite"),
-    (HEADER + GOOD + "0.2,0,0,0,0,0,0,1\n0.1,0,0,0,0,0,0,1\n", "data row 3 .*earlier than data row 2"),
-    (HEADER + GOOD + "0,0,0,0,0,0,0,1\n", "data row 2 .*repeats data row 1"),
-    (HEADER + GOOD + "0.1,0,0,0,0,0,0,0.9\n", "quaternion of data row 2 has norm 0.9"),
-    (HEADER + GOOD, "at least 2 samples"),
-    (HEADER, "at least 2 samples"),
-    (HEADER + GOOD + "0.1,0,0\n", "data row 2 has 3 fields"),
-    (HEADER + GOOD + "\n0.1,0,0,0,0,0,0,1\n", "data row 2 has 0 fields"),
-])
+@pytest.mark.parametrize(
+    "text, pattern",
+    [
+        ("", "empty file"),
+        ("t,x,y,z,qx,qy,qw\n" + GOOD, "missing column.*'qz'"),
+        (HEADER.replace("qw", "qw,speed") + "0,0,0,0,0,0,0,1,3\n", "unknown column 'speed'"),
+        ("t,x,y,z,qx,qy,qz,qw,x\n", "'x' appears more than once"),
+        (HEADER + GOOD + "0.1,0,abc,0,0,0,0,1\n", "data row 2, column 'y': cannot parse 'abc'"),
+        (HEADER + GOOD + "0.1,0,0,nan,0,0,0,1\n", "data row 2, column 'z'.*not finite"),
+        (HEADER + GOOD + "0.1,inf,0,0,0,0,0,1\n", "data row 2, column 'x'.*not finite"),
+        (HEADER + GOOD + "0.2,0,0,0,0,0,0,1\n0.1,0,0,0,0,0,0,1\n", "data row 3 .*earlier than data row 2"),
+        (HEADER + GOOD + "0,0,0,0,0,0,0,1\n", "data row 2 .*repeats data row 1"),
+        (HEADER + GOOD + "0.1,0,0,0,0,0,0,0.9\n", "quaternion of data row 2 has norm 0.9"),
+        (HEADER + GOOD, "at least 2 samples"),
+        (HEADER, "at least 2 samples"),
+        (HEADER + GOOD + "0.1,0,0\n", "data row 2 has 3 fields"),
+        (HEADER + GOOD + "\n0.1,0,0,0,0,0,0,1\n", "data row 2 has 0 fields"),
+    ],
+)
 def test_malformed_csv_names_row_or_column(tmp_path, text, pattern):
     path = write_text(tmp_path, text)
     with pytest.raises(TrajectoryError, match=pattern) as info:
@@ -157,6 +168,7 @@ def test_failed_writes_leave_nothing(tmp_path):
 def test_failure_during_write_removes_temporary(tmp_path, monkeypatch):
     def fail(src, dst):
         raise OSError("disk full")
+
     monkeypatch.setattr(os, "replace", fail)
     with pytest.raises(OSError, match="disk full"):
         write_csv(random_traj(), tmp_path / "x.csv")
@@ -219,8 +231,7 @@ def test_min_jerk_closed_form():
     tau = np.linspace(0, 1, 101)
     s, ds = min_jerk(tau)
     h = 1e-6
-    np.testing.assert_allclose(ds[1:-1], (min_jerk(tau[1:-1] + h)[0] - min_jerk(tau[1:-1] - h)[0]) / (2 * h),
-                               atol=1e-7)
+    np.testing.assert_allclose(ds[1:-1], (min_jerk(tau[1:-1] + h)[0] - min_jerk(tau[1:-1] - h)[0]) / (2 * h), atol=1e-7)
     assert s[0] == 0 and s[-1] == 1 and ds[0] == 0 and ds[-1] == 0
     assert np.max(ds) == pytest.approx(1.875)
 
@@ -250,7 +261,7 @@ def test_guidance_path_shape_and_limits():
     assert {0, len(traj) - 1} <= set(at_rest) and len(at_rest) >= 5
     # the four segments: planar x-y, x-z, y-z figures, then the tilted parabola
     joins = sorted(set(at_rest))
-    seg = [traj.position[a:b + 1] - c for a, b in zip(joins[:-1], joins[1:]) if b > a + 1]
+    seg = [traj.position[a : b + 1] - c for a, b in zip(joins[:-1], joins[1:]) if b > a + 1]
     assert len(seg) == 4
     for s, flat in zip(seg[:3], (2, 1, 0)):
         assert np.max(np.abs(s[:, flat])) < 1e-15 and np.ptp(s[:, (flat + 1) % 3]) > 0.01
@@ -258,8 +269,7 @@ def test_guidance_path_shape_and_limits():
     u = seg[3] @ e1 / 0.04
     np.testing.assert_allclose(seg[3] @ e2, 0.04 * u**2, atol=1e-12)
     np.testing.assert_allclose(seg[3] @ np.cross(e1, e2), 0.0, atol=1e-12)
-    np.testing.assert_allclose(traj.quaternion, np.tile(pin.Quaternion(DOWN).coeffs(), (len(traj), 1)),
-                               atol=1e-12)
+    np.testing.assert_allclose(traj.quaternion, np.tile(pin.Quaternion(DOWN).coeffs(), (len(traj), 1)), atol=1e-12)
 
 
 def test_lemniscate_is_bernoulli():
@@ -303,8 +313,7 @@ def test_point_to_point_moves():
 
 
 def test_point_to_point_minimum_jerk_profile():
-    traj = point_to_point([[0, 0, 0], [0.2, 0, 0]], duration_per_move=2.0, lift=0.0, orientation=np.eye(3),
-                          dt=0.01)
+    traj = point_to_point([[0, 0, 0], [0.2, 0, 0]], duration_per_move=2.0, lift=0.0, orientation=np.eye(3), dt=0.01)
     assert traj.duration == pytest.approx(2.0)
     tau = traj.t / 2.0
     np.testing.assert_allclose(traj.position[:, 0], 0.2 * (10 * tau**3 - 15 * tau**4 + 6 * tau**5), atol=1e-15)

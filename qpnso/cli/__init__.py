@@ -70,17 +70,28 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("solve", help="solve a tool trajectory tick by tick (the main job)")
     p.add_argument("trajectory", help="CSV with header t,x,y,z,qx,qy,qz,qw (s, m, unit quaternion)")
     add_robot_arguments(p)
-    p.add_argument("--q0", default=None, help="start configuration in RADIANS, comma-separated "
-                   "(default: found for the first pose, elbow up)")
+    p.add_argument(
+        "--q0",
+        default=None,
+        help="start configuration in RADIANS, comma-separated (default: found for the first pose, elbow up)",
+    )
     p.add_argument("--strategy", default=None, help="qp (default), damped, fixed, elbow-up, gradient, rom")
     p.add_argument("--config", default=None, help="TOML file of controller settings (flags override it)")
     p.add_argument("--dt", type=float, default=None, help="tick length, s (default 0.001)")
     p.add_argument("--out", default="result.npz", help="per-tick arrays (NumPy .npz)")
     p.add_argument("--summary", default=None, help="also write the summary as JSON")
-    p.add_argument("--tool-tolerance-mm", type=float, default=1.0,
-                   help="the run fails (exit status 1) if the tool ever leaves the path by more (default 1 mm)")
-    p.add_argument("--tool-tolerance-deg", type=float, default=1.0,
-                   help="same for the tool's orientation error, DEGREES (default 1)")
+    p.add_argument(
+        "--tool-tolerance-mm",
+        type=float,
+        default=1.0,
+        help="the run fails (exit status 1) if the tool ever leaves the path by more (default 1 mm)",
+    )
+    p.add_argument(
+        "--tool-tolerance-deg",
+        type=float,
+        default=1.0,
+        help="same for the tool's orientation error, DEGREES (default 1)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=cmd_solve)
 
@@ -124,11 +135,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-n", type=int, default=3000, help="timed calls per row; fuzz: ticks (default 3000)")
     p.add_argument("--strategies", default=None, help="comma-separated strategies for 'tick', 'fuzz' (default all)")
     p.add_argument("--seed", type=int, default=0, help="fuzz: random seed (default 0)")
-    p.add_argument("--solver-time-budget-ms", type=float, default=None,
-                   help="fuzz: every controller's solver_time_budget, in ms of CPU time (default: none)")
+    p.add_argument(
+        "--solver-time-budget-ms",
+        type=float,
+        default=None,
+        help="fuzz: every controller's solver_time_budget, in ms of CPU time (default: none)",
+    )
     p.add_argument("--quick", action="store_true", help="solvers: the small committed problem set (< 1 min)")
-    p.add_argument("--out", default=None, help="solvers: folder for report.md, results.csv, figure "
-                   "(default solver-bench); fuzz: the report as JSON")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="solvers: folder for report.md, results.csv, figure (default solver-bench); fuzz: the report as JSON",
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=cmd_bench)
     return parser

@@ -12,13 +12,15 @@ from qpnso.cli.common import load_cli_robot, parse_vector, progress_bar, write_j
 def cmd_bench(args: argparse.Namespace) -> int:
     """Time the cost or the control tick; print a Markdown table of medians and p99."""
     from qpnso.lab import benchmark
+
     if args.what == "solvers":
         from pathlib import Path
 
         from qpnso.lab.solver_bench import run_solver_benchmark
 
-        report = run_solver_benchmark(Path(args.out or "solver-bench"), quick=args.quick,
-                                      progress=None if args.quiet else print)
+        report = run_solver_benchmark(
+            Path(args.out or "solver-bench"), quick=args.quick, progress=None if args.quiet else print
+        )
         print(report.read_text())
         return 0
     if args.what == "fuzz":
@@ -47,8 +49,15 @@ def bench_fuzz(args: argparse.Namespace) -> int:
     offset = parse_vector(args.tool_offset, 3, "--tool-offset") if args.tool_offset else (0.0, 0.0, 0.1)
     strategies = tuple(x.strip() for x in args.strategies.split(",") if x.strip()) if args.strategies else STRATEGIES
     budget = None if args.solver_time_budget_ms is None else args.solver_time_budget_ms * 1e-3
-    config = FuzzConfig(seed=args.seed, ticks=args.n, strategies=strategies, robot=args.robot,
-                        tool_frame=args.tool_frame, tool_offset=tuple(offset), solver_time_budget=budget)
+    config = FuzzConfig(
+        seed=args.seed,
+        ticks=args.n,
+        strategies=strategies,
+        robot=args.robot,
+        tool_frame=args.tool_frame,
+        tool_offset=tuple(offset),
+        solver_time_budget=budget,
+    )
     report = run_fuzz(config, progress=progress_bar(not args.quiet, "fuzz"))
     if args.out:
         write_json(args.out, report.to_dict())

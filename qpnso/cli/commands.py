@@ -32,21 +32,27 @@ def cmd_info(args: argparse.Namespace) -> int:
     robot = load_cli_robot(args)
     q = robot_q(args, robot)
     print(f"robot {robot.name}  ({robot.source})  nq = {robot.nq}")
-    print(f"{'joint':<10}{'q_min°':>9}{'q_max°':>9}{'dq_max°/s':>11}{'tau_max N·m':>13}"
-          f"{'friction N·m':>14}{'beta s/rad':>12}{'link kg':>9}")
+    print(
+        f"{'joint':<10}{'q_min°':>9}{'q_max°':>9}{'dq_max°/s':>11}{'tau_max N·m':>13}"
+        f"{'friction N·m':>14}{'beta s/rad':>12}{'link kg':>9}"
+    )
     for k, name in enumerate(robot.joint_names):
         mass = robot.model.inertias[k + 1].mass
-        print(f"{name:<10}{np.degrees(robot.q_min[k]):>9.1f}{np.degrees(robot.q_max[k]):>9.1f}"
-              f"{np.degrees(robot.dq_max[k]):>11.1f}{robot.tau_limit[k]:>13.1f}"
-              f"{robot.friction.tau_max[k]:>14.2f}{robot.friction.beta[k]:>12.1f}{mass:>9.3f}")
+        print(
+            f"{name:<10}{np.degrees(robot.q_min[k]):>9.1f}{np.degrees(robot.q_max[k]):>9.1f}"
+            f"{np.degrees(robot.dq_max[k]):>11.1f}{robot.tau_limit[k]:>13.1f}"
+            f"{robot.friction.tau_max[k]:>14.2f}{robot.friction.beta[k]:>12.1f}{mass:>9.3f}"
+        )
     moving = sum(robot.model.inertias[j].mass for j in range(1, robot.model.njoints))
     base = robot.model.inertias[0].mass
     print(f"moving mass {moving:.3f} kg (+ {base:.3f} kg fixed base)")
     tool = robot.model.frames[robot.tool_frame_id]
     parent = robot.model.frames[tool.parentFrame].name
     pose = robot.tool_pose(q)
-    print(f"tool frame on {parent!r}, offset {np.round(tool.placement.translation, 4).tolist()} m from joint "
-          f"{robot.model.names[tool.parentJoint]!r}")
+    print(
+        f"tool frame on {parent!r}, offset {np.round(tool.placement.translation, 4).tolist()} m from joint "
+        f"{robot.model.names[tool.parentJoint]!r}"
+    )
     print(f"at q = {np.round(np.degrees(q), 2).tolist()} deg:")
     print(f"  tool position (world) {np.round(pose.translation, 4).tolist()} m")
     cost = CostModel(robot, compile="off")
@@ -54,9 +60,11 @@ def cmd_info(args: argparse.Namespace) -> int:
     units = {"mass": "1/kg³", "inertia": "1/(kg·m²)³", "friction_force": "N²", "friction_torque": "N²·m²"}
     for t in TERMS:
         print(f"  {t:<16} {terms[t]: .6g} {units[t]:<12} (scale {cost.scales[t]:.4g})")
-    print(f"  largest principal mass {cost.principal_mass(q):.3f} kg, "
-          f"friction force magnitude {cost.friction_force_magnitude(q):.3f} N "
-          f"(potential speed {cost.potential_speed} m/s)")
+    print(
+        f"  largest principal mass {cost.principal_mass(q):.3f} kg, "
+        f"friction force magnitude {cost.friction_force_magnitude(q):.3f} N "
+        f"(potential speed {cost.potential_speed} m/s)"
+    )
     print(f"  weighted cost {cost.value(q):.6g} with weights {cost.describe()['weights']}")
     return 0
 
@@ -65,8 +73,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_intervals(args: argparse.Namespace) -> int:
     """Plot every joint versus the arm angle for the tool pose of q (PNG)."""
     from qpnso.elbow.intervals import continuity_interval
-    from qpnso.lab.plots import plot_intervals
     from qpnso.elbow.rom import ElbowConfig
+    from qpnso.lab.plots import plot_intervals
 
     if not have_matplotlib():
         from qpnso.errors import InputError
@@ -96,14 +104,19 @@ def cmd_trajectory(args: argparse.Namespace) -> int:
     import pinocchio as pin
 
     from qpnso.control import trajectory as tr
+
     center = parse_vector(args.center, 3, "--center")
     rot = pin.rpy.rpyToMatrix(*np.radians(parse_vector(args.rpy_deg, 3, "--rpy-deg")))
     pose = pin.SE3(rot, center)
     if args.kind == "guidance":
         traj = tr.guidance_path(pose, size=args.size, speed=args.speed, dt=args.dt)
     elif args.kind == "point-to-point":
-        targets = parse_targets(args.targets) if args.targets else center + np.array(
-            [[0, 0, 0], [0.08, 0, 0], [0.08, 0.08, 0], [0, 0.08, 0], [-0.08, 0, 0], [0, -0.08, 0]])
+        targets = (
+            parse_targets(args.targets)
+            if args.targets
+            else center
+            + np.array([[0, 0, 0], [0.08, 0, 0], [0.08, 0.08, 0], [0, 0.08, 0], [-0.08, 0, 0], [0, -0.08, 0]])
+        )
         traj = tr.point_to_point(targets, peak_speed=args.speed, orientation=rot, dt=args.dt)
     else:
         traj = tr.hold(pose, args.duration, dt=args.dt)
@@ -130,12 +143,21 @@ def cmd_solve(args: argparse.Namespace) -> int:
     q0 = None
     if args.q0 is not None:
         q0 = robot.check_q(parse_vector(args.q0, robot.nq, "--q0"), "--q0")
-    result = solve_trajectory(robot, traj, q0=q0, config=cfg, progress=progress_bar(not args.quiet, "solve"),
-                              tool_tolerance_m=tol_m, tool_tolerance_rad=float(tol_rad))
+    result = solve_trajectory(
+        robot,
+        traj,
+        q0=q0,
+        config=cfg,
+        progress=progress_bar(not args.quiet, "solve"),
+        tool_tolerance_m=tol_m,
+        tool_tolerance_rad=float(tol_rad),
+    )
     result.save(args.out)
     if args.summary:
-        write_json(args.summary, {"robot": robot.name, "strategy": cfg.strategy, "trajectory": str(args.trajectory),
-                                  **result.summary})
+        write_json(
+            args.summary,
+            {"robot": robot.name, "strategy": cfg.strategy, "trajectory": str(args.trajectory), **result.summary},
+        )
     print_summary(result.summary, f"{robot.name}, strategy {cfg.strategy}, {args.trajectory} -> {args.out}")
     print_notes(result.messages)
     print_slow_ticks(result.summary, cfg.dt)
@@ -151,18 +173,21 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     """Hands-on guidance simulation of a scenario with one strategy."""
     from pathlib import Path
 
+    from qpnso.control.offline import config_values
     from qpnso.lab.plots import plot_run
     from qpnso.lab.scenarios import load_scenario, simulate_scenario
-    from qpnso.control.offline import config_values
 
     sc = load_scenario(args.scenario)
     settings = config_values(args.config, controller_overrides(args))
     plot = not args.no_plot and have_matplotlib()  # checked first: say so before a long run, not after
     if not args.no_plot and not plot:
-        print(f"qpnso: note: {NO_MATPLOTLIB}: run.png will be skipped (result.npz and summary.json are written)",
-              file=sys.stderr)
-    result = simulate_scenario(args.scenario, None, args.duration_scale,
-                               progress_bar(not args.quiet, "simulate"), settings)
+        print(
+            f"qpnso: note: {NO_MATPLOTLIB}: run.png will be skipped (result.npz and summary.json are written)",
+            file=sys.stderr,
+        )
+    result = simulate_scenario(
+        args.scenario, None, args.duration_scale, progress_bar(not args.quiet, "simulate"), settings
+    )
     strategy = settings.get("strategy", sc.controller.get("strategy", "qp"))
     out = Path(args.out)
     result.save(out / "result.npz")
@@ -195,8 +220,22 @@ def cmd_plot(args: argparse.Namespace) -> int:
             arrays = {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(f"{not_result}: cannot read it ({exc})") from None
-    missing = [k for k in ("t", "ns", "rom_lo", "rom_hi", "interval_lo", "interval_hi", "stiffness", "mass",
-                           "friction_force", "tool_position") if k not in arrays]
+    missing = [
+        k
+        for k in (
+            "t",
+            "ns",
+            "rom_lo",
+            "rom_hi",
+            "interval_lo",
+            "interval_hi",
+            "stiffness",
+            "mass",
+            "friction_force",
+            "tool_position",
+        )
+        if k not in arrays
+    ]
     if missing:
         raise InputError(f"{not_result}: it lacks {missing}")
     if not have_matplotlib():
@@ -239,19 +278,24 @@ def cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
-def comparison_table(rows: list, sc) -> str:  # type: ignore[no-untyped-def]
+def comparison_table(rows: list, sc) -> str:
     margin = sc.controller.get("safety_margin_deg", 10.0)
-    lines = [f"scenario {sc.name} ({sc.description}), safety margin {margin:g} deg", "",
-             "| strategy | Δ elbow mobility (deg) | Δc proximity (deg) | Δc ≥ margin | S smoothness | "
-             "tool error max (mm) | work per metre (N) | tick median (µs) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"scenario {sc.name} ({sc.description}), safety margin {margin:g} deg",
+        "",
+        "| strategy | Δ elbow mobility (deg) | Δc proximity (deg) | Δc ≥ margin | S smoothness | "
+        "tool error max (mm) | work per metre (N) | tick median (µs) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name, m in rows:
         lines.append(
             f"| {name} | {m.get('elbow_mobility_deg', float('nan')):.1f} | "
             f"{m.get('constraint_proximity_deg', float('nan')):.1f} | "
             f"{'yes' if m.get('constraint_proximity_deg', -1) >= margin else 'no'} | "
-            f"{m.get('smoothness', float('nan')):.0f} | {1000 * m.get('tool_position_error_max_m', float('nan')):.2f} | "
-            f"{m.get('user_work_per_metre_N', float('nan')):.2f} | {m.get('tick_time_median_us', float('nan')):.0f} |")
+            f"{m.get('smoothness', float('nan')):.0f} | "
+            f"{1000 * m.get('tool_position_error_max_m', float('nan')):.2f} | "
+            f"{m.get('user_work_per_metre_N', float('nan')):.2f} | {m.get('tick_time_median_us', float('nan')):.0f} |"
+        )
     return "\n".join(lines)
 
 
@@ -268,12 +312,23 @@ def cmd_study(args: argparse.Namespace) -> int:
         if not sep:
             raise argparse.ArgumentTypeError(f"--option takes key=value, got {item!r}")
         options[key.strip()] = value.strip()
-    summary = run_study(args.name, Path(args.out), n=args.n, seed=args.seed, workers=args.workers,
-                        scheduler=args.scheduler, progress=not args.quiet, options=options or None)
-    print_summary({k: v for k, v in summary.items() if not isinstance(v, (dict, list))},
-                  f"study {args.name} -> {args.out}")
+    summary = run_study(
+        args.name,
+        Path(args.out),
+        n=args.n,
+        seed=args.seed,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=not args.quiet,
+        options=options or None,
+    )
+    print_summary(
+        {k: v for k, v in summary.items() if not isinstance(v, (dict, list))}, f"study {args.name} -> {args.out}"
+    )
     for key, value in summary.items():
         if isinstance(value, dict):
-            print(f"  {key}: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                                            for k, v in value.items()))
+            print(
+                f"  {key}: "
+                + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in value.items())
+            )
     return 0

@@ -68,7 +68,8 @@ def have_matplotlib() -> bool:
 
 NO_MATPLOTLIB = "matplotlib is not installed (pip install 'qpnso[plot]')"
 
-def progress_bar(enabled: bool, desc: str):  # type: ignore[no-untyped-def]
+
+def progress_bar(enabled: bool, desc: str):
     """A ``progress(done, total)`` callback drawing a tqdm bar on stderr, or None."""
     if not enabled:
         return None
@@ -130,5 +131,7 @@ def print_slow_ticks(summary: dict, dt: float) -> None:
     """One line when some ticks took longer than the control period."""
     slow = int(summary.get("slow_ticks", 0))
     if slow:
-        print(f"  note: {slow} of {int(summary['ticks'])} ticks ({100 * slow / summary['ticks']:.1f} %) took longer "
-              f"than the {1000 * dt:g} ms control period; the longest took {summary['tick_time_max_ms']:.4g} ms")
+        print(
+            f"  note: {slow} of {int(summary['ticks'])} ticks ({100 * slow / summary['ticks']:.1f} %) took longer "
+            f"than the {1000 * dt:g} ms control period; the longest took {summary['tick_time_max_ms']:.4g} ms"
+        )

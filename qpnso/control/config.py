@@ -9,18 +9,30 @@ from __future__ import annotations
 
 import enum
 from dataclasses import asdict, dataclass, field
+from typing import final
 
 import numpy as np
 
+from qpnso.control.tick import (
+    FLAG_COST_UNDEFINED,
+    FLAG_ELBOW_DROPPED,
+    FLAG_ELBOW_OUTSIDE_ROM,
+    FLAG_ELBOW_SLACK,
+    FLAG_INTERNAL_ERROR,
+    FLAG_INTERVAL_STALE,
+    FLAG_Q_OUT_OF_LIMITS,
+    FLAG_QP_DEADLINE,
+    FLAG_QP_FAILED,
+    FLAG_QP_FALLBACK,
+    FLAG_ROM_EMPTY,
+    FLAG_TOOL_LIMITED,
+    FLAG_TORQUE_SATURATED,
+)
 from qpnso.elbow.rom import ElbowConfig
 from qpnso.model.costs import CostWeights
 from qpnso.qp import QPSettings
 from qpnso.settings import SettingError, check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
-from qpnso.control.tick import (FLAG_COST_UNDEFINED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_OUTSIDE_ROM, FLAG_ELBOW_SLACK,
-                                FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_Q_OUT_OF_LIMITS, FLAG_QP_DEADLINE,
-                                FLAG_QP_FAILED, FLAG_QP_FALLBACK, FLAG_ROM_EMPTY, FLAG_TOOL_LIMITED,
-                                FLAG_TORQUE_SATURATED)
 
 _NOT_OK_BITS = FLAG_QP_FAILED | FLAG_ELBOW_DROPPED | FLAG_INTERNAL_ERROR
 STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom")
@@ -68,7 +80,9 @@ class ControllerConfig:
     pose_correction_speed: float = 0.1  # m/s: the largest speed at which the tool point returns to its reference
     pose_correction_angular_speed: float = 1.0  # rad/s: the same for the tool's orientation
     cost_gain: float = 10.0  # rad²/s per unit cost: level-2 step -gain·∇c
-    nullspace_speed_max: float = 1.0  # rad/s, saturation of the cost step (as [M 20]) and of the baselines' posture steps
+    nullspace_speed_max: float = (
+        1.0  # rad/s, saturation of the cost step (as [M 20]) and of the baselines' posture steps
+    )
     cost_filter_time: float = 0.1  # s, low-pass of the cost step (0: none): no velocity steps
     posture_filter_time: float = 0.1  # s, the same low-pass of the baselines' kinematic posture steps (0: none)
     elbow_gain: float = 5.0  # 1/s, velocity damper of the elbow bounds
@@ -101,19 +115,35 @@ class ControllerConfig:
         then ranges; a :class:`qpnso.settings.SettingError` names the key, value and range."""
         check(self)
         if self.strategy not in STRATEGIES:
-            raise SettingError(type(self).__name__, "strategy",
-                               f"unknown strategy {self.strategy!r}; choose one of {', '.join(STRATEGIES)}")
+            raise SettingError(
+                type(self).__name__,
+                "strategy",
+                f"unknown strategy {self.strategy!r}; choose one of {', '.join(STRATEGIES)}",
+            )
         if not 0 < self.dt <= 0.1:
             raise out_of_range(self, "dt", "must be in (0, 0.1] s")
-        positive = ("pose_gain", "cost_gain", "nullspace_speed_max", "elbow_gain", "joint_limit_gain",
-                    "slack_weight", "posture_gain", "gradient_kd", "gradient_omega_max", "rom_half_width_deg",
-                    "recovery_speed", "pose_correction_speed", "pose_correction_angular_speed")
+        positive = (
+            "pose_gain",
+            "cost_gain",
+            "nullspace_speed_max",
+            "elbow_gain",
+            "joint_limit_gain",
+            "slack_weight",
+            "posture_gain",
+            "gradient_kd",
+            "gradient_omega_max",
+            "rom_half_width_deg",
+            "recovery_speed",
+            "pose_correction_speed",
+            "pose_correction_angular_speed",
+        )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise out_of_range(self, name, "must be > 0")
         if self.joint_limit_gain * self.dt > 1.0:
-            raise out_of_range(self, "joint_limit_gain",
-                               f"must be <= 1/dt = {1 / self.dt:g} 1/s (else a joint could cross its limit)")
+            raise out_of_range(
+                self, "joint_limit_gain", f"must be <= 1/dt = {1 / self.dt:g} 1/s (else a joint could cross its limit)"
+            )
         for name in ("cost_filter_time", "posture_filter_time", "safety_margin_deg", "q_limit_tolerance_deg"):
             if getattr(self, name) < 0:
                 raise out_of_range(self, name, "must be >= 0")
@@ -148,6 +178,7 @@ class ControllerConfig:
         )
 
 
+@final  # (the controller tells a Command from its other tick outputs by its exact type)
 @dataclass
 class Command:
     """The controller's output for one tick (rad, rad/s, N·m, s; world frame)."""

@@ -32,37 +32,71 @@ from __future__ import annotations
 
 import math
 import time
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 import pinocchio as pin
 
 from qpnso.compiled_cache import announce_numba_if_cold
-from qpnso.model.costs import CostModel
+from qpnso.control.config import Command, ControllerConfig, ElbowState, Status, _status
+from qpnso.control.state import StateEvaluator, TickState
+from qpnso.control.tick import (
+    FLAG_INTERNAL_ERROR,
+    FLAG_INTERVAL_STALE,
+    FLAG_QP_FAILED,
+    FLAG_ROM_EMPTY,
+    LINE_OK,
+    NS,
+    P_MOVED_TOL,
+    P_PERIOD,
+    TICK_ELBOW_DROPPED,
+    TICK_NEED_INTERVAL,
+    TICK_NOT_FINITE,
+    TICK_Q_REFUSED,
+    TICK_STATE_NOT_FINITE,
+    LineTickBuffers,
+    answer_bits,
+    arm_angle_singular,
+    elbow_advance,
+    elbow_bounds,
+    elbow_memory,
+    elbow_parameters,
+    finish_command,
+    interval_failed,
+    interval_stale,
+    level1_target,
+    limits_status,
+    pose_error,
+    qp_command,
+    qp_tick,
+    qp_tick_answer,
+    store_interval,
+    velocity_bounds,
+)
+from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
+from qpnso.elbow.intervals import continuity_interval
+from qpnso.elbow.rom import stiffness
 from qpnso.errors import ConfigError, InputError, QpnsoError
+from qpnso.linalg import dynamically_consistent_projection
+from qpnso.model.costs import CostModel
+from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
 from qpnso.qp import HierarchicalQP, Level
 from qpnso.qp.backends import solved_vector
 from qpnso.qp.line import LINE_ANSWER_OK
 from qpnso.qp.results import level_failure
-from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
-from qpnso.elbow.intervals import continuity_interval
-from qpnso.linalg import dynamically_consistent_projection
-from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
-from qpnso.elbow.rom import stiffness
-from qpnso.control.config import Command, ControllerConfig, ElbowState, Status, _status
-from qpnso.control.state import StateEvaluator, TickState
-from qpnso.control.tick import (FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_QP_FAILED,
-                         FLAG_ROM_EMPTY, LINE_OK, NS,
-                         P_MOVED_TOL, P_PERIOD, TICK_ELBOW_DROPPED, TICK_NEED_INTERVAL, TICK_NOT_FINITE, TICK_Q_REFUSED,
-                         TICK_STATE_NOT_FINITE, LineTickBuffers, answer_bits, arm_angle_singular, elbow_advance,
-                         elbow_bounds, elbow_memory, elbow_parameters, finish_command, interval_failed,
-                         interval_stale, level1_target, limits_status, pose_error, qp_command, qp_tick,
-                         qp_tick_answer, store_interval, velocity_bounds)
+
+if TYPE_CHECKING:
+    from qpnso.control.strategies import QPStrategy
+
 
 def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Status:
     """Flags of a solved tick: level 1's residual (``TOOL_LIMITED``) and the elbow rows' slack
     (``ELBOW_SLACK``) against what is reported (:func:`qpnso.control.tick.answer_bits`)."""
-    return _status(answer_bits(-1.0 if tool_residual is None else tool_residual,
-                               slack.max() if slack is not None and slack.size else -1.0))
+    return _status(
+        answer_bits(
+            -1.0 if tool_residual is None else tool_residual, slack.max() if slack is not None and slack.size else -1.0
+        )
+    )
 
 
 _NOT_FINITE_MESSAGE = "the command was not finite: joints stopped"
@@ -86,6 +120,7 @@ def _norm(v: np.ndarray) -> float:
 _WRIST_SIN_MIN = float(np.sin(np.radians(WRIST_CONE_DEG)))
 _ELBOW_BITS = FLAG_INTERVAL_STALE | FLAG_ROM_EMPTY
 
+
 class Controller:
     """Hierarchical-QP null-space controller of a 7-DOF arm (docs/method.md §7)."""
 
@@ -96,33 +131,53 @@ class Controller:
         self.robot = robot
         self.config = config or ControllerConfig()
         cfg = self.config
-        self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed,
-                              compile=cfg.compile)
+        self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed, compile=cfg.compile)
         self.evaluate = StateEvaluator(self.cost, compile=cfg.compile)
         self.elbow_config = ec = cfg.elbow()
-        self._elbow_params = elbow_parameters(ec.half_width_rad, ec.safety_margin_rad, ec.stiffness_min,
-                                              ec.stiffness_max, ec.alpha_per_rad, ec.d_rad, _WRIST_SIN_MIN,
-                                              ELBOW_OFFSET_MIN_M, cfg.interval_period)
+        self._elbow_params = elbow_parameters(
+            ec.half_width_rad,
+            ec.safety_margin_rad,
+            ec.stiffness_min,
+            ec.stiffness_max,
+            ec.alpha_per_rad,
+            ec.d_rad,
+            _WRIST_SIN_MIN,
+            ELBOW_OFFSET_MIN_M,
+            cfg.interval_period,
+        )
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
         tolerance = math.radians(cfg.q_limit_tolerance_deg)
         self._q_accepted = (robot.q_min - tolerance, robot.q_max + tolerance)  # rad: beyond, InputError
         # rows: q as checked (rad, limits widened by 1e-9), q_min, q_max (rad), dq_max (rad/s), q accepted (rad)
-        self._limits = np.array([robot.q_min - 1e-9, robot.q_max + 1e-9, robot.q_min, robot.q_max, robot.dq_max,
-                                 *self._q_accepted])
+        self._limits = np.array(
+            [robot.q_min - 1e-9, robot.q_max + 1e-9, robot.q_min, robot.q_max, robot.dq_max, *self._q_accepted]
+        )
         self._q_shape = (robot.nq,)
         self.strategy = make_strategy(cfg.strategy, self)
         self._can_compile = cfg.strategy == "qp" and self.qp.settings.line_fast_path
+        qp_strategy = cast("QPStrategy", self.strategy)  # (read below only when _can_compile: strategy "qp")
         self.compiled_tick = cfg.compiled_tick and self._can_compile
-        self._gains = np.array([cfg.pose_gain, cfg.joint_limit_gain, cfg.cost_gain, cfg.nullspace_speed_max,
-                                self.strategy.filter_alpha if self._can_compile else 0.0, cfg.elbow_gain,
-                                1.0 / math.sqrt(2.0 * cfg.slack_weight), cfg.recovery_speed,
-                                cfg.pose_correction_speed, cfg.pose_correction_angular_speed, 0.5 * cfg.dt])
+        self._gains = np.array(
+            [
+                cfg.pose_gain,
+                cfg.joint_limit_gain,
+                cfg.cost_gain,
+                cfg.nullspace_speed_max,
+                qp_strategy.filter_alpha if self._can_compile else 0.0,
+                cfg.elbow_gain,
+                1.0 / math.sqrt(2.0 * cfg.slack_weight),
+                cfg.recovery_speed,
+                cfg.pose_correction_speed,
+                cfg.pose_correction_angular_speed,
+                0.5 * cfg.dt,
+            ]
+        )
         self._dq_accepted = cfg.dq_tolerance_factor * robot.dq_max  # rad/s: beyond, InputError
         limit = np.array(robot.tau_limit, dtype=float)
         self._tau_limit = np.where(np.isfinite(limit) & (limit > 0), limit, 0.0)  # N·m; 0: none given
         st = self.qp.settings
         self._qp_tol = np.array([st.rank_tol, st.damping_threshold, st.regularization or 0.0])
-        self._line = LineTickBuffers(self.strategy.filtered_step) if self._can_compile else None
+        self._line = LineTickBuffers(qp_strategy.filtered_step) if self._can_compile else None
         self._no_twist = np.zeros(6)  # never written (writable: a read-only array is another Numba type)
         self._warm_up()
 
@@ -177,8 +232,9 @@ class Controller:
         self.step_count = 0
 
     # ----------------------------------------------------------------- step
-    def step(self, q: object, dq: object = None, tool_twist: object = None,
-             tool_pose: pin.SE3 | None = None) -> Command:
+    def step(
+        self, q: object, dq: object = None, tool_twist: object = None, tool_pose: pin.SE3 | None = None
+    ) -> Command:
         """One tick.
 
         ``q`` (rad) measured joints; ``dq`` (rad/s) measured joint velocity
@@ -191,8 +247,15 @@ class Controller:
         t0 = time.perf_counter()
         if not self._reset_done:
             raise QpnsoError("call Controller.reset(q0) before step()")
-        qv = q if type(q) is np.ndarray and q.dtype == np.float64 and q.shape == self._q_shape \
-            and q.flags.c_contiguous and q.flags.writeable else as_vector(q, self.robot.nq, "q")
+        qv = (
+            q
+            if type(q) is np.ndarray
+            and q.dtype == np.float64
+            and q.shape == self._q_shape
+            and q.flags.c_contiguous
+            and q.flags.writeable
+            else as_vector(q, self.robot.nq, "q")
+        )
         if (tool_pose is not None or not self.compiled_tick) and limits_status(qv, *self._q_accepted):
             self._refuse_q(qv)  # (the compiled tick's qp_tick checks q first itself: TICK_Q_REFUSED)
         dq_meas = self._dq_prev if dq is None else self._checked_dq(dq)
@@ -207,8 +270,13 @@ class Controller:
         except QpnsoError:
             raise
         except Exception as exc:  # a bug must not reach the robot as a traceback: stop, say why
-            cmd = self._stop(qv, self._gravity_or_zero(qv), FLAG_INTERNAL_ERROR, t0,
-                             f"internal error ({type(exc).__name__}: {exc}): joints stopped")
+            cmd = self._stop(
+                qv,
+                self._gravity_or_zero(qv),
+                FLAG_INTERNAL_ERROR,
+                t0,
+                f"internal error ({type(exc).__name__}: {exc}): joints stopped",
+            )
         if self.qp.stats.active_set_fallbacks != fallbacks:
             cmd.status |= Status.QP_FALLBACK
         if tool_twist is not None:
@@ -228,7 +296,8 @@ class Controller:
             f"q[{i}] ({r.joint_names[i]}) = {math.degrees(qv[i]):.4g}° ({qv[i]:.6g} rad) is outside its limits "
             f"[{math.degrees(r.q_min[i]):.4g}°, {math.degrees(r.q_max[i]):.4g}°] "
             f"([{r.q_min[i]:.6g}, {r.q_max[i]:.6g}] rad) by more than {self.config.q_limit_tolerance_deg:g}°; "
-            f"q is in radians")
+            f"q is in radians"
+        )
 
     def _checked_dq(self, dq: object) -> np.ndarray:
         """The measured ``dq`` (rad/s) as a vector; :class:`InputError` naming the first joint faster than
@@ -237,16 +306,31 @@ class Controller:
         over = np.abs(v) > self._dq_accepted
         if over.any():
             i = int(np.argmax(over))
-            raise InputError(f"dq[{i}] = {v[i]:.6g} rad/s is beyond {self.config.dq_tolerance_factor:g} × its "
-                             f"velocity limit {self.robot.dq_max[i]:.6g} rad/s; dq is in rad/s")
+            raise InputError(
+                f"dq[{i}] = {v[i]:.6g} rad/s is beyond {self.config.dq_tolerance_factor:g} × its "
+                f"velocity limit {self.robot.dq_max[i]:.6g} rad/s; dq is in rad/s"
+            )
         return v
 
     def _stop(self, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float, message: str) -> Command:
         """The stop command of a tick that could not be computed: dq 0, q_des = q, τ = ``gravity`` (g(q))."""
         memory = self._elbow_memory
         ns = float(memory[NS])
-        cmd = Command(np.zeros(self.robot.nq), qv.copy(), np.array(gravity, dtype=float), 0.0, ns, (ns, ns),
-                      (ns - math.pi, ns + math.pi), 0.0, Status.OK, 0.0, 0.0, (0.0, 0.0), message)
+        cmd = Command(
+            np.zeros(self.robot.nq),
+            qv.copy(),
+            np.array(gravity, dtype=float),
+            0.0,
+            ns,
+            (ns, ns),
+            (ns - math.pi, ns + math.pi),
+            0.0,
+            Status.OK,
+            0.0,
+            0.0,
+            (0.0, 0.0),
+            message,
+        )
         return self._finish(cmd, qv, cmd.tau, bits | FLAG_QP_FAILED, t0, True)
 
     def _gravity_or_zero(self, qv: np.ndarray) -> np.ndarray:
@@ -257,24 +341,43 @@ class Controller:
         except Exception:
             return np.zeros(self.robot.nq)
 
-    def _finish(self, cmd: Command, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float,
-                dropped: bool) -> Command:
+    def _finish(
+        self, cmd: Command, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float, dropped: bool
+    ) -> Command:
         """Every tick's last step (:func:`qpnso.control.tick.finish_command`): τ within the effort limits, an
         arm angle outside ROM_t flagged, a non-finite command replaced by the stop command; the status
         and the tick time set."""
-        bits |= finish_command(qv, cmd.dq, cmd.q_des, cmd.tau, gravity, self._tau_limit, self.robot.dq_max,
-                               self.config.dt, cmd.arm_angle, cmd.rom[0], cmd.rom[1], dropped)
+        bits |= finish_command(
+            qv,
+            cmd.dq,
+            cmd.q_des,
+            cmd.tau,
+            gravity,
+            self._tau_limit,
+            self.robot.dq_max,
+            self.config.dt,
+            cmd.arm_angle,
+            cmd.rom[0],
+            cmd.rom[1],
+            dropped,
+        )
         return _stamped(cmd, bits, t0)
 
-    def _general(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float,
-                 started: tuple | None = None) -> Command:
+    def _general(
+        self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float, started: tuple | None = None
+    ) -> Command:
         """The tick through :meth:`HierarchicalQP.solve` with the strategy's levels (any strategy);
         ``started`` the ``(state, elbow, status)`` a compiled tick got to before the line fast path
         proved not to apply."""
         state, elbow, status = started or self._begin(qv, twist)
         if state.flags & FLAG_INTERNAL_ERROR:
-            return self._stop(qv, state.gravity, status.value | FLAG_INTERNAL_ERROR, t0,
-                              "the arm's state is not finite: joints stopped")
+            return self._stop(
+                qv,
+                state.gravity,
+                status.value | FLAG_INTERNAL_ERROR,
+                t0,
+                "the arm's state is not finite: joints stopped",
+            )
         error = self._pose_error(state)
         lb, ub = self._velocity_bounds(state.q)
         level1 = Level(A=state.jacobian, b=level1_target(twist, error, self._gains, state.tool_drift))
@@ -285,11 +388,19 @@ class Controller:
         dq_cmd, qp_status, message = self._command_velocity(result)
         tau = self._torque(state, dq_cmd, dq_meas, elbow)
         cmd = Command(
-            dq=dq_cmd, q_des=qv + self.config.dt * dq_cmd, tau=tau, stiffness=self.strategy.stiffness(elbow),
-            arm_angle=elbow.ns, rom=elbow.rom, interval=elbow.interval, cost=state.cost,
+            dq=dq_cmd,
+            q_des=qv + self.config.dt * dq_cmd,
+            tau=tau,
+            stiffness=self.strategy.stiffness(elbow),
+            arm_angle=elbow.ns,
+            rom=elbow.rom,
+            interval=elbow.interval,
+            cost=state.cost,
             status=status | qp_status if qp_status else status,
-            solve_time=result.solve_time, tick_time=0.0,
-            tool_error=(_norm(error[:3]), _norm(error[3:])), message=message,
+            solve_time=result.solve_time,
+            tick_time=0.0,
+            tool_error=(_norm(error[:3]), _norm(error[3:])),
+            message=message,
         )
         return self._finish(cmd, qv, state.gravity, 0, t0, elbow.dropped)
 
@@ -312,12 +423,13 @@ class Controller:
         flat = self.evaluate.raw(qv, self._dq_prev, twist)
         t1 = time.perf_counter()
         buf = self._line
-        tick, t_interval = self._qp_tick(qv, flat, twist, True), 0.0
+        assert buf is not None  # the compiled tick has its buffers (_can_compile)
+        tick, t_interval = self._qp_tick(buf, qv, flat, twist, True), 0.0
         if tick[0] == TICK_NEED_INTERVAL:  # (its time is not the QP's)
             t_interval = time.perf_counter()
             self._update_interval(qv, flat[:12])  # (qp_tick then flags a stale interval itself)
             t_interval = time.perf_counter() - t_interval
-            tick = self._qp_tick(qv, flat, twist, False)
+            tick = self._qp_tick(buf, qv, flat, twist, False)
         code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits = tick
         if code == TICK_NOT_FINITE or code == TICK_Q_REFUSED:
             self._refuse_q(qv)  # raises, naming the entries or the joint
@@ -327,33 +439,99 @@ class Controller:
             elbow = ElbowState(ns, (rom_lo, rom_hi), (iv_lo, iv_hi), k, _status(bits & _ELBOW_BITS))
             return self.evaluate.state(qv, flat.copy()), elbow, _status(bits)
         raw = self.qp.line_level_raw(buf.H, buf.g, buf.C, buf.l, buf.u, buf.box_l, buf.box_u, buf.x0, buf.d, 1)
-        v, answer = solved_vector(raw, buf.box_l.shape), None
+        v = solved_vector(raw, buf.box_l.shape)
+        answer: tuple | None = None
         if v is not None:
-            answer = qp_tick_answer(v, buf.line, buf.box_l, buf.box_u, buf.C, buf.l, buf.u,
-                                    self.qp.settings.feasibility_tol, flat, self.evaluate.offsets, qv, dq_meas, k,
-                                    self.config.dt, self.config.joint_damping, residual, bits, self._tau_limit,
-                                    self.robot.dq_max, ns, rom_lo, rom_hi)
+            answer = qp_tick_answer(
+                v,
+                buf.line,
+                buf.box_l,
+                buf.box_u,
+                buf.C,
+                buf.l,
+                buf.u,
+                self.qp.settings.feasibility_tol,
+                flat,
+                self.evaluate.offsets,
+                qv,
+                dq_meas,
+                k,
+                self.config.dt,
+                self.config.joint_damping,
+                residual,
+                bits,
+                self._tau_limit,
+                self.robot.dq_max,
+                ns,
+                rom_lo,
+                rom_hi,
+            )
         ok = answer is not None and answer[0] == LINE_ANSWER_OK
         self.qp.count_solve(ok)
         if ok:  # finished in qp_tick_answer (finish_command): the command as sent
+            assert answer is not None  # (ok)
             _, dq_cmd, q_des, tau, bits = answer
-            cmd = Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, Status.OK,
-                          time.perf_counter() - t1 - t_interval, 0.0, (e_pos, e_rot), "")
+            cmd = Command(
+                dq_cmd,
+                q_des,
+                tau,
+                k,
+                ns,
+                (rom_lo, rom_hi),
+                (iv_lo, iv_hi),
+                cost,
+                Status.OK,
+                time.perf_counter() - t1 - t_interval,
+                0.0,
+                (e_pos, e_rot),
+                "",
+            )
             return _stamped(cmd, bits, t0)
         second = self.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
         dq_cmd, fallback, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
-        q_des, tau = qp_command(flat, self.evaluate.offsets, qv, dq_cmd, dq_meas, k, self.config.dt,
-                                self.config.joint_damping)
-        cmd = Command(dq_cmd, q_des, tau, k, ns, (rom_lo, rom_hi), (iv_lo, iv_hi), cost, Status.OK,
-                      time.perf_counter() - t1 - t_interval, 0.0, (e_pos, e_rot), message)
+        q_des, tau = qp_command(
+            flat, self.evaluate.offsets, qv, dq_cmd, dq_meas, k, self.config.dt, self.config.joint_damping
+        )
+        cmd = Command(
+            dq_cmd,
+            q_des,
+            tau,
+            k,
+            ns,
+            (rom_lo, rom_hi),
+            (iv_lo, iv_hi),
+            cost,
+            Status.OK,
+            time.perf_counter() - t1 - t_interval,
+            0.0,
+            (e_pos, e_rot),
+            message,
+        )
         o = self.evaluate.offsets
-        return self._finish(cmd, qv, flat[o[9]:o[10]], bits | fallback.value, t0, False)
+        return self._finish(cmd, qv, flat[o[9] : o[10]], bits | fallback.value, t0, False)
 
-    def _qp_tick(self, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool) -> tuple:
-        """:func:`qpnso.control.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers."""
-        return qp_tick(qv, flat, self.evaluate.offsets, self._limits, self.ref_rotation, self.ref_position, twist,
-                       self._elbow_memory, self.ns0, self._elbow_params, advance, self._gains, self._qp_tol,
-                       self._line.identity, *self._line.outputs())
+    def _qp_tick(
+        self, buf: LineTickBuffers, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool
+    ) -> tuple:
+        """:func:`qpnso.control.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers
+        (``buf``: ``self._line``)."""
+        return qp_tick(
+            qv,
+            flat,
+            self.evaluate.offsets,
+            self._limits,
+            self.ref_rotation,
+            self.ref_position,
+            twist,
+            self._elbow_memory,
+            self.ns0,
+            self._elbow_params,
+            advance,
+            self._gains,
+            self._qp_tol,
+            buf.identity,
+            *buf.outputs(),
+        )
 
     # ------------------------------------------------------------- helpers
     def _check_input(self, qv: np.ndarray) -> Status:
@@ -407,7 +585,8 @@ class Controller:
 
     def _update_interval(self, q: np.ndarray, pose: np.ndarray) -> None:
         """Recompute the continuity interval [E 9] at ``q`` into the elbow memory; when it cannot be, the
-        previous one (or, before any, the full circle) stands, marked stale (:func:`qpnso.control.tick.interval_stale`)."""
+        previous one (or, before any, the full circle) stands, marked stale
+        (:func:`qpnso.control.tick.interval_stale`)."""
         try:
             interval = continuity_interval(self.robot, q)
         except QpnsoError:

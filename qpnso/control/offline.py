@@ -16,12 +16,11 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpnso.control.controller import Controller
-
 from qpnso.control.config import ControllerConfig
+from qpnso.control.controller import Controller
+from qpnso.control.trajectory import Trajectory
 from qpnso.errors import ConfigError, InputError, QpnsoError, UnreachableError
 from qpnso.model.robot import Robot
-from qpnso.control.trajectory import Trajectory
 
 try:  # Python 3.11+
     import tomllib
@@ -29,9 +28,27 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 
-RESULT_KEYS = ("t", "q", "dq", "ns", "rom_lo", "rom_hi", "interval_lo", "interval_hi", "cost", "mass",
-               "friction_force", "status", "stiffness", "tool_position", "ref_position",
-               "tool_position_error", "tool_rotation_error", "tick_time", "solve_time")
+RESULT_KEYS = (
+    "t",
+    "q",
+    "dq",
+    "ns",
+    "rom_lo",
+    "rom_hi",
+    "interval_lo",
+    "interval_hi",
+    "cost",
+    "mass",
+    "friction_force",
+    "status",
+    "stiffness",
+    "tool_position",
+    "ref_position",
+    "tool_position_error",
+    "tool_rotation_error",
+    "tick_time",
+    "solve_time",
+)
 
 
 @dataclass
@@ -56,7 +73,8 @@ class RunResult:
 
     def save(self, path: str | Path) -> Path:
         """Write ``result.npz`` atomically (temporary file, then rename)."""
-        return atomic_write(Path(path), lambda f: np.savez_compressed(f, **self.arrays))
+        # NumPy's stub: mypy cannot tell that no key of ``**self.arrays`` is the keyword ``allow_pickle: bool``
+        return atomic_write(Path(path), lambda f: np.savez_compressed(f, **self.arrays))  # type: ignore[arg-type]
 
 
 def atomic_write(path: Path, write) -> Path:
@@ -129,16 +147,24 @@ def config_values(path: str | Path | None, overrides: dict | None = None) -> dic
         if "controller" in data:
             values = data["controller"]
             if not isinstance(values, dict):
-                raise SettingError(str(p), "controller", f"expected a table of ControllerConfig settings, "
-                                   f"got {type(values).__name__}", show(values))
+                raise SettingError(
+                    str(p),
+                    "controller",
+                    f"expected a table of ControllerConfig settings, got {type(values).__name__}",
+                    show(values),
+                )
             tables = sorted(SCENARIO_TABLES)
             for key in data:
                 if key in values and key != "controller":
                     raise SettingError(str(p), key, "given both at the top level and under [controller]; keep one")
                 if key not in tables:
-                    raise SettingError(str(p), key, f"not allowed at the top level beside a [controller] table "
-                                       f"(top-level tables: {', '.join(tables)}); controller settings go under "
-                                       f"[controller]")
+                    raise SettingError(
+                        str(p),
+                        key,
+                        f"not allowed at the top level beside a [controller] table "
+                        f"(top-level tables: {', '.join(tables)}); controller settings go under "
+                        f"[controller]",
+                    )
         values = dict(values)
         check_table(ControllerConfig, values, str(p))
     values.update({k: v for k, v in (overrides or {}).items() if v is not None})
@@ -160,13 +186,14 @@ def load_config(path: str | Path | None, overrides: dict | None = None) -> Contr
         raise exc.within(where=str(path)) from None
 
 
-def initial_configuration(robot: Robot, pose: pin.SE3, arm_angle: float = 0.0,
-                          interval_margin_deg: float = 15.0) -> np.ndarray:
+def initial_configuration(
+    robot: Robot, pose: pin.SE3, arm_angle: float = 0.0, interval_margin_deg: float = 15.0
+) -> np.ndarray:
     """A configuration (rad) reaching ``pose`` with the arm angle closest to ``arm_angle``
     (0 = elbow up), joints 2° inside their limits, preferring those at least
     ``interval_margin_deg`` from the ends of their continuity interval (S-R-S arms)."""
-    from qpnso.elbow.srs import Branch, ik
     from qpnso.elbow.intervals import continuity_interval
+    from qpnso.elbow.srs import Branch, ik
 
     candidates = []
     offsets = np.radians(np.arange(0, 181, 5))
@@ -248,7 +275,8 @@ class Recorder:
         from qpnso.lab.metrics import summarize_run
 
         arrays = {k: np.asarray(v) for k, v in self.rec.items()}
-        summary = summarize_run(arrays, {f.name: f.value for f in Status if f.value}, dt=self.ctrl.config.dt)
+        flags = {f.name: f.value for f in Status if f.value and f.name is not None}  # (members are named)
+        summary = summarize_run(arrays, flags, dt=self.ctrl.config.dt)
         summary.update(feel_summary(arrays))
         return RunResult(arrays, summary, self.messages)
 
@@ -259,10 +287,15 @@ TOOL_TOLERANCE_RAD = float(np.radians(1.0))
 """Default tool rotation tolerance of :func:`solve_trajectory` (rad)."""
 
 
-def solve_trajectory(robot: Robot, traj: Trajectory, q0: np.ndarray | None = None,
-                     config: ControllerConfig | None = None, progress=None,
-                     tool_tolerance_m: float = TOOL_TOLERANCE_M,
-                     tool_tolerance_rad: float = TOOL_TOLERANCE_RAD) -> RunResult:
+def solve_trajectory(
+    robot: Robot,
+    traj: Trajectory,
+    q0: np.ndarray | None = None,
+    config: ControllerConfig | None = None,
+    progress=None,
+    tool_tolerance_m: float = TOOL_TOLERANCE_M,
+    tool_tolerance_rad: float = TOOL_TOLERANCE_RAD,
+) -> RunResult:
     """Run the controller along ``traj`` at ``config.dt``; the per-tick arrays and summary.
 
     ``q0`` (rad) must put the tool on the first pose (within 1 mm); without it,
@@ -278,10 +311,10 @@ def solve_trajectory(robot: Robot, traj: Trajectory, q0: np.ndarray | None = Non
     robot.require_redundant_arm()
     for name, value in (("tool_tolerance_m", tool_tolerance_m), ("tool_tolerance_rad", tool_tolerance_rad)):
         try:
-            v = float(value)
+            tolerance = float(value)
         except (TypeError, ValueError):
-            v = float("nan")
-        if not (np.isfinite(v) and v > 0):
+            tolerance = float("nan")
+        if not (np.isfinite(tolerance) and tolerance > 0):
             raise InputError(f"{name} must be a positive finite number, got {value!s}")
     ctrl = Controller(robot, cfg)
     first = traj.pose(traj.t[0])
@@ -314,9 +347,12 @@ def data_row(row_times: np.ndarray, t: float) -> int:
     return int(np.searchsorted(np.asarray(row_times, dtype=float), float(t) + 1e-9, side="right"))  # 1e-9 s: round-off
 
 
-def tool_error_check(arrays: dict[str, np.ndarray], row_times: np.ndarray,
-                     tolerance_m: float = TOOL_TOLERANCE_M,
-                     tolerance_rad: float = TOOL_TOLERANCE_RAD) -> tuple[dict[str, Any], str]:
+def tool_error_check(
+    arrays: dict[str, np.ndarray],
+    row_times: np.ndarray,
+    tolerance_m: float = TOOL_TOLERANCE_M,
+    tolerance_rad: float = TOOL_TOLERANCE_RAD,
+) -> tuple[dict[str, Any], str]:
     """Did the tool stay on the trajectory?  ``(summary entries, failure line)``.
 
     Compares the recorded ``tool_position_error`` (m) and ``tool_rotation_error``
@@ -331,8 +367,11 @@ def tool_error_check(arrays: dict[str, np.ndarray], row_times: np.ndarray,
     t = np.asarray(arrays["t"], dtype=float)
     pos = np.asarray(arrays["tool_position_error"], dtype=float)
     rot = np.asarray(arrays["tool_rotation_error"], dtype=float)
-    out: dict[str, Any] = {"result": "ok", "tool_tolerance_m": float(tolerance_m),
-                           "tool_tolerance_deg": float(np.degrees(tolerance_rad))}
+    out: dict[str, Any] = {
+        "result": "ok",
+        "tool_tolerance_m": float(tolerance_m),
+        "tool_tolerance_deg": float(np.degrees(tolerance_rad)),
+    }
     bad = ~(pos <= tolerance_m) | ~(rot <= tolerance_rad)  # NaN counts as exceeded
     if not bad.any():
         return out, ""
@@ -341,23 +380,31 @@ def tool_error_check(arrays: dict[str, np.ndarray], row_times: np.ndarray,
     row = data_row(row_times, t[k])
     worst_p = int(np.nanargmax(pos)) if np.isfinite(pos).any() else k
     worst_r = int(np.nanargmax(rot)) if np.isfinite(rot).any() else k
-    out.update(result="failed", first_failed_tick=k, first_failed_t_s=float(f"{t[k]:.12g}"),
-               first_failed_data_row=row, first_failed_data_row_t_s=float(row_times[max(row, 1) - 1]),
-               first_failed_position_error_m=float(pos[k]), first_failed_rotation_error_deg=float(np.degrees(rot[k])),
-               worst_position_error_m=float(pos[worst_p]),
-               worst_position_error_data_row=data_row(row_times, t[worst_p]),
-               worst_rotation_error_deg=float(np.degrees(rot[worst_r])),
-               worst_rotation_error_data_row=data_row(row_times, t[worst_r]))
+    out.update(
+        result="failed",
+        first_failed_tick=k,
+        first_failed_t_s=float(f"{t[k]:.12g}"),
+        first_failed_data_row=row,
+        first_failed_data_row_t_s=float(row_times[max(row, 1) - 1]),
+        first_failed_position_error_m=float(pos[k]),
+        first_failed_rotation_error_deg=float(np.degrees(rot[k])),
+        worst_position_error_m=float(pos[worst_p]),
+        worst_position_error_data_row=data_row(row_times, t[worst_p]),
+        worst_rotation_error_deg=float(np.degrees(rot[worst_r])),
+        worst_rotation_error_data_row=data_row(row_times, t[worst_r]),
+    )
     what = []
     if not pos[k] <= tolerance_m:
         what.append(f"position error {1000 * pos[k]:.3g} mm > {1000 * tolerance_m:g} mm")
     if not rot[k] <= tolerance_rad:
         what.append(f"rotation error {np.degrees(rot[k]):.3g} deg > {np.degrees(tolerance_rad):g} deg")
-    line = (f"the tool left the trajectory at data row {row} (t = {row_times[max(row, 1) - 1]:.6g} s; "
-            f"data rows count from 1 after the header), tick t = {t[k]:.6g} s: {' and '.join(what)}; "
-            f"largest position error {1000 * out['worst_position_error_m']:.4g} mm "
-            f"(data row {out['worst_position_error_data_row']}), rotation error "
-            f"{out['worst_rotation_error_deg']:.3g} deg (data row {out['worst_rotation_error_data_row']})")
+    line = (
+        f"the tool left the trajectory at data row {row} (t = {row_times[max(row, 1) - 1]:.6g} s; "
+        f"data rows count from 1 after the header), tick t = {t[k]:.6g} s: {' and '.join(what)}; "
+        f"largest position error {1000 * out['worst_position_error_m']:.4g} mm "
+        f"(data row {out['worst_position_error_data_row']}), rotation error "
+        f"{out['worst_rotation_error_deg']:.3g} deg (data row {out['worst_rotation_error_data_row']})"
+    )
     return out, line
 
 

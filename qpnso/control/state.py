@@ -17,9 +17,9 @@ import casadi as ca
 import numpy as np
 from numba import njit
 
+from qpnso.elbow.arm_angle import arm_angle_expression, elbow_points
 from qpnso.model.codegen import FastFunction
 from qpnso.model.costs import CostModel
-from qpnso.elbow.arm_angle import arm_angle_expression, elbow_points
 
 
 @dataclass
@@ -59,13 +59,26 @@ class StateEvaluator:
         total = cost.expression
         J = sym.frame_jacobian(robot.tool_frame_id)
         dq, twist = ca.SX.sym("dq", robot.nq), ca.SX.sym("twist", 6)
-        parts = [tool.R, tool.p, J, total, ca.gradient(total, sym.q), ns, ca.gradient(ns, sym.q), measures,
-                 sym.mass_matrix(), sym.gravity_torque(), tool_drift(sym.q, J, predicted_velocity(J, dq, twist))]
+        parts = [
+            tool.R,
+            tool.p,
+            J,
+            total,
+            ca.gradient(total, sym.q),
+            ns,
+            ca.gradient(ns, sym.q),
+            measures,
+            sym.mass_matrix(),
+            sym.gravity_torque(),
+            tool_drift(sym.q, J, predicted_velocity(J, dq, twist)),
+        ]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
         self._zero_velocity = np.zeros(robot.nq)
-        self._fn = FastFunction(ca.Function(f"tick_{robot.name}", [ca.vertcat(sym.q, dq, twist)], [stacked],
-                                            ["q_dq_twist"], ["state"]), compile)  # one input: one copy a tick
+        self._fn = FastFunction(
+            ca.Function(f"tick_{robot.name}", [ca.vertcat(sym.q, dq, twist)], [stacked], ["q_dq_twist"], ["state"]),
+            compile,
+        )  # one input: one copy a tick
         self._zero_twist = np.zeros(6)
         self.offsets = np.cumsum([0] + [part.numel() for part in parts])
         """Start of each part in the stacked vector, and its length at the end (in the order of
@@ -110,8 +123,9 @@ def predicted_velocity(J: ca.SX, dq: ca.SX, twist: ca.SX) -> ca.SX:
     (damped least squares, ε = :data:`PREDICTION_DAMPING`).  The null-space motion changes little from
     one tick to the next, the tool's can jump (a surgeon's pull that stops): the second-order term along
     the previous command alone left a held tool 1–2 µm off after a 2 m/s pull (the fuzz, measured)."""
-    return dq + ca.mtimes(J.T, ca.solve(ca.mtimes(J, J.T) + PREDICTION_DAMPING ** 2 * ca.SX.eye(6),
-                                        twist - ca.mtimes(J, dq)))
+    return dq + ca.mtimes(
+        J.T, ca.solve(ca.mtimes(J, J.T) + PREDICTION_DAMPING**2 * ca.SX.eye(6), twist - ca.mtimes(J, dq))
+    )
 
 
 def tool_drift(q: ca.SX, J: ca.SX, velocity: ca.SX) -> ca.SX:
@@ -123,16 +137,28 @@ def tool_drift(q: ca.SX, J: ca.SX, velocity: ca.SX) -> ca.SX:
 
 
 @njit(cache=True)
-def state_views(flat, offsets):  # type: ignore[no-untyped-def]
+def state_views(flat, offsets):
     """The stacked state cut at ``offsets`` (:attr:`StateEvaluator.offsets`): ``(R, p, J, c, ∇c, ns, ∇ns,
     wrist_sin, elbow_offset, A, g, J̇q̇)``, arrays as views (column-major parts: F-ordered), scalars as floats."""
     o = offsets
     n = o[5] - o[4]
-    R = flat[o[0]:o[1]].reshape((3, 3)).T
-    J = flat[o[2]:o[3]].reshape((n, 6)).T
-    A = flat[o[8]:o[9]].reshape((n, n)).T
-    return (R, flat[o[1]:o[2]], J, flat[o[3]], flat[o[4]:o[5]], flat[o[5]], flat[o[6]:o[7]], flat[o[7]],
-            flat[o[7] + 1], A, flat[o[9]:o[10]], flat[o[10]:o[11]])
+    R = flat[o[0] : o[1]].reshape((3, 3)).T
+    J = flat[o[2] : o[3]].reshape((n, 6)).T
+    A = flat[o[8] : o[9]].reshape((n, n)).T
+    return (
+        R,
+        flat[o[1] : o[2]],
+        J,
+        flat[o[3]],
+        flat[o[4] : o[5]],
+        flat[o[5]],
+        flat[o[6] : o[7]],
+        flat[o[7]],
+        flat[o[7] + 1],
+        A,
+        flat[o[9] : o[10]],
+        flat[o[10] : o[11]],
+    )
 
 
 COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT = 128, 2048
@@ -140,7 +166,7 @@ COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT = 128, 2048
 
 
 @njit(cache=True)
-def sanitize_state(flat, offsets):  # type: ignore[no-untyped-def]
+def sanitize_state(flat, offsets):
     """Make a stacked state (:func:`qpnso.control.state.state_views`) safe to act on, in place; returns status
     bits.  A cost or cost gradient that is not finite (the tool Jacobian singular: Λ undefined) is set
     to 0 (``COST_UNDEFINED``: no cost step this tick); an arm angle or gradient that is not finite marks
@@ -150,12 +176,12 @@ def sanitize_state(flat, offsets):  # type: ignore[no-untyped-def]
     bits = 0
     for i in range(o[3], o[5]):
         if not math.isfinite(flat[i]):
-            flat[o[3]:o[5]] = 0.0
+            flat[o[3] : o[5]] = 0.0
             bits |= COST_UNDEFINED_BIT
             break
     for i in range(o[5], o[8]):
         if not math.isfinite(flat[i]):
-            flat[o[5]:o[8]] = 0.0  # wrist sine 0: singular
+            flat[o[5] : o[8]] = 0.0  # wrist sine 0: singular
             break
     for i in range(o[0], o[3]):
         if not math.isfinite(flat[i]):

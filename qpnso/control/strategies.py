@@ -18,13 +18,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from qpnso.control.tick import cost_step, elbow_row_bounds, low_pass, qp_nullspace_torque
 from qpnso.errors import ConfigError, QpnsoError
 from qpnso.qp import Level
-from qpnso.control.tick import cost_step, elbow_row_bounds, low_pass, qp_nullspace_torque
 
 if TYPE_CHECKING:
-    from qpnso.control.controller import Controller
     from qpnso.control.config import ControllerConfig, ElbowState
+    from qpnso.control.controller import Controller
     from qpnso.control.state import TickState
 
 
@@ -61,8 +61,9 @@ class Strategy:
         """The null-space stiffness this strategy applies (N·m/rad): none for DP."""
         return 0.0
 
-    def nullspace_torque(self, state: "TickState", elbow: "ElbowState", dq_cmd: np.ndarray,
-                         dq_meas: np.ndarray) -> np.ndarray:
+    def nullspace_torque(
+        self, state: "TickState", elbow: "ElbowState", dq_cmd: np.ndarray, dq_meas: np.ndarray
+    ) -> np.ndarray:
         """DP: τ = −D q̇ with D = ``joint_damping`` (10 N·m·s/rad, the elbow paper's)."""
         return -self.cfg.joint_damping * dq_meas
 
@@ -141,8 +142,7 @@ class ElbowUp(Strategy):
         return Level(A=row, b=self.posture_target(np.array([rate])))
 
     def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
-        return (self.cfg.posture_stiffness * arm_angle_step(state, self._delta(elbow))
-                - self.cfg.joint_damping * dq_meas)
+        return self.cfg.posture_stiffness * arm_angle_step(state, self._delta(elbow)) - self.cfg.joint_damping * dq_meas
 
 
 class Gradient(Strategy):
@@ -190,9 +190,9 @@ class RomModulation(Strategy):
         return self._ik_step(state, elbow, target)
 
     def _ik_step(self, state, elbow, target: float) -> np.ndarray:
-        from qpnso.elbow.srs import branch, ik
-
         import pinocchio as pin
+
+        from qpnso.elbow.srs import branch, ik
 
         try:
             pose = pin.SE3(state.tool_rotation, state.tool_position)

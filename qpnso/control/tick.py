@@ -28,11 +28,11 @@ import math
 import numpy as np
 from numba import njit
 
+from qpnso.control.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state, state_views
+from qpnso.elbow.rom import clipped_bounds, sigmoid_stiffness
+from qpnso.linalg import dot, dynamically_consistent_projection, matmul, matvec, nullspace_part
 from qpnso.qp.backends import qp_data_finite
 from qpnso.qp.line import LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, task_line
-from qpnso.linalg import dot, dynamically_consistent_projection, matmul, matvec, nullspace_part
-from qpnso.elbow.rom import clipped_bounds, sigmoid_stiffness
-from qpnso.control.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state, state_views
 
 LOG3_MAX_ANGLE = math.pi - 1e-3
 """rad: :func:`pose_error` reports (``ok`` False) a rotation error closer to π than this, where
@@ -61,7 +61,12 @@ TICK_NEED_INTERVAL = 6
 # Status bits (qpnso.control.config.Status names them)
 FLAG_QP_FAILED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_ROM_EMPTY = 1, 2, 4, 8
 FLAG_Q_OUT_OF_LIMITS, FLAG_INTERVAL_STALE, FLAG_TOOL_LIMITED = 16, 32, 64
-FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = COST_UNDEFINED_BIT, 256, 512, 1024
+FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = (
+    COST_UNDEFINED_BIT,
+    256,
+    512,
+    1024,
+)
 FLAG_INTERNAL_ERROR = INTERNAL_ERROR_BIT
 FLAG_QP_DEADLINE = 4096
 
@@ -80,7 +85,7 @@ TWO_PI = 2.0 * math.pi
 
 
 @njit(cache=True)
-def pose_error(R, p, R_ref, p_ref):  # type: ignore[no-untyped-def]
+def pose_error(R, p, R_ref, p_ref):
     """``(e, ok)``: ``e = (p_ref − p, log₃(R_ref Rᵀ))`` (6,), m then rad, world frame, as
     ``pinocchio.log3``; ``ok`` False when the angle exceeds :data:`LOG3_MAX_ANGLE` (``e`` then partial)."""
     E = matmul(R_ref, R.T)
@@ -101,7 +106,7 @@ def pose_error(R, p, R_ref, p_ref):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def pose_correction(e, gains):  # type: ignore[no-untyped-def]
+def pose_correction(e, gains):
     """Level 1's correction ``K_p·e`` (m/s, rad/s; world frame) of the pose error ``e`` (m, rad), its linear
     part scaled to at most ``gains[8]`` m/s and its angular part to at most ``gains[9]`` rad/s
     (``ControllerConfig.pose_correction_speed``/``pose_correction_angular_speed``): a tool knocked off its
@@ -118,7 +123,7 @@ def pose_correction(e, gains):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def level1_target(twist, e, gains, drift):  # type: ignore[no-untyped-def]
+def level1_target(twist, e, gains, drift):
     """Level 1's right-hand side ``v + K_p e − ½dt·J̇q̇`` (m/s, rad/s; world frame, tool point): the tool
     twist, the capped pose correction (:func:`pose_correction`) and the step's second-order term (``drift``
     J̇q̇ along the predicted command, ``gains[10]`` = ½dt).  Over a tick at q̇ the tool moves by
@@ -129,7 +134,7 @@ def level1_target(twist, e, gains, drift):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def limits_status(q, low, high):  # type: ignore[no-untyped-def]
+def limits_status(q, low, high):
     """0: ``q`` finite and within ``[low, high]``; 1: finite, some entry outside; 2: NaN or inf."""
     code = 0
     for i in range(q.shape[0]):
@@ -141,7 +146,7 @@ def limits_status(q, low, high):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def max_abs_difference(a, b):  # type: ignore[no-untyped-def]
+def max_abs_difference(a, b):
     """``max |a − b|`` over the entries of two vectors of the same length."""
     worst = 0.0
     for i in range(a.shape[0]):
@@ -150,7 +155,7 @@ def max_abs_difference(a, b):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def velocity_bounds(q, q_min, q_max, dq_max, gain, recovery):  # type: ignore[no-untyped-def]
+def velocity_bounds(q, q_min, q_max, dq_max, gain, recovery):
     """``(lb, ub)`` (rad/s): ``−γ(q − q_min) ≤ q̇ ≤ γ(q_max − q)`` clipped to ``±dq_max`` and
     ``ub ≥ lb`` (γ·dt ≤ 1: q never crosses a limit).  A joint outside a limit is pushed back at rate γ
     and moves at most at ``recovery`` rad/s (``ControllerConfig.recovery_speed``) either way, never at
@@ -169,7 +174,7 @@ def velocity_bounds(q, q_min, q_max, dq_max, gain, recovery):  # type: ignore[no
 
 
 @njit(cache=True)
-def cost_step(J, cost_gradient, gain, speed_max):  # type: ignore[no-untyped-def]
+def cost_step(J, cost_gradient, gain, speed_max):
     """The ``qp`` strategy's step ``k∇c`` (rad/s), scaled so that its part in ``ker J`` (what the
     null space can do) is at most ``speed_max`` rad/s (the saturation of [M 20])."""
     step = gain * cost_gradient
@@ -181,7 +186,7 @@ def cost_step(J, cost_gradient, gain, speed_max):  # type: ignore[no-untyped-def
 
 
 @njit(cache=True)
-def low_pass(previous, step, alpha):  # type: ignore[no-untyped-def]
+def low_pass(previous, step, alpha):
     """First-order low-pass ``previous + α(step − previous)``; ``α ≤ 0``: no filter (``step``)."""
     if alpha <= 0.0:
         return step.copy()
@@ -189,7 +194,7 @@ def low_pass(previous, step, alpha):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def elbow_row_bounds(ns, rom_lo, rom_hi, gain, recovery):  # type: ignore[no-untyped-def]
+def elbow_row_bounds(ns, rom_lo, rom_hi, gain, recovery):
     """``(l, u)`` (1,) of the elbow row ``ξ(ns_lo − ns) ≤ ∇nsᵀ q̇ ≤ ξ(ns_hi − ns)`` (rad/s): the velocity
     damper that keeps the arm angle in ROM_t, or brings it back at rate ξ but at most ``recovery``
     rad/s (a fast elbow return would drag the held tool: its second-order drift grows as q̇²)."""
@@ -197,7 +202,7 @@ def elbow_row_bounds(ns, rom_lo, rom_hi, gain, recovery):  # type: ignore[no-unt
 
 
 @njit(cache=True)
-def answer_bits(tool_residual, slack_max):  # type: ignore[no-untyped-def]
+def answer_bits(tool_residual, slack_max):
     """Status bits of a solved tick: ``TOOL_LIMITED`` for level 1's residual (m/s, rad/s) above
     :data:`TOOL_RESIDUAL_REPORTED`, ``ELBOW_SLACK`` for an elbow row's slack (rad/s) above
     :data:`ELBOW_SLACK_REPORTED` (a negative value: nothing to report)."""
@@ -210,7 +215,7 @@ def answer_bits(tool_residual, slack_max):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def finish_command(q, dq, q_des, tau, gravity, tau_limit, dq_max, dt, ns, rom_lo, rom_hi, dropped):  # type: ignore[no-untyped-def]
+def finish_command(q, dq, q_des, tau, gravity, tau_limit, dq_max, dt, ns, rom_lo, rom_hi, dropped):
     """The last step of every tick, in place: dq within ``±dq_max`` (a QP answer may exceed a bound by its
     feasibility tolerance; q_des follows), the torque saturated at the model's effort limits
     (``TORQUE_SATURATED``; a limit ≤ 0 means none given), an arm angle outside ROM_t flagged
@@ -242,7 +247,7 @@ def finish_command(q, dq, q_des, tau, gravity, tau_limit, dq_max, dt, ns, rom_lo
 
 
 @njit(cache=True)
-def qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
+def qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping):
     """The ``qp`` strategy's null-space impedance ``K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)`` (N·m)."""
     return stiffness * dt * dq_cmd + damping * (dq_cmd - dq_meas)
 
@@ -274,7 +279,7 @@ def interval_failed(memory: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def interval_stale(memory):  # type: ignore[no-untyped-def]
+def interval_stale(memory):
     """Whether the elbow memory holds no continuity interval, or one whose renewal failed
     (:func:`interval_failed`): ``INTERVAL_STALE`` on every tick until a renewal succeeds."""
     return memory[IV_KNOWN] != 1.0
@@ -290,24 +295,34 @@ P_HALF_WIDTH, P_MARGIN, P_K_MIN, P_K_MAX, P_ALPHA, P_D, P_WRIST_SIN_MIN, P_OFFSE
 """Indices of :func:`elbow_parameters`."""
 
 
-def elbow_parameters(half_width: float, margin: float, k_min: float, k_max: float, alpha: float, d: float,
-                     wrist_sin_min: float, elbow_offset_min: float, period: int) -> np.ndarray:
+def elbow_parameters(
+    half_width: float,
+    margin: float,
+    k_min: float,
+    k_max: float,
+    alpha: float,
+    d: float,
+    wrist_sin_min: float,
+    elbow_offset_min: float,
+    period: int,
+) -> np.ndarray:
     """The elbow kernels' constants in one array (indices ``P_*``): ROM half width Δns and safety
     margin d_sg (rad), stiffness K_min, K_max (N·m/rad), α (1/rad), d (rad) [E 6], the singularity
     thresholds (sine, m), the interval's update period (ticks) and :data:`TOOL_MOVED_TOL`."""
-    return np.array([half_width, margin, k_min, k_max, alpha, d, wrist_sin_min, elbow_offset_min, period,
-                     TOOL_MOVED_TOL])
+    return np.array(
+        [half_width, margin, k_min, k_max, alpha, d, wrist_sin_min, elbow_offset_min, period, TOOL_MOVED_TOL]
+    )
 
 
 @njit(cache=True)
-def arm_angle_singular(wrist_sin, elbow_offset, params):  # type: ignore[no-untyped-def]
+def arm_angle_singular(wrist_sin, elbow_offset, params):
     """Whether the arm angle is undefined this tick (wrist near the vertical through the shoulder,
     or a straight elbow): the elbow constraints are dropped."""
     return wrist_sin < params[P_WRIST_SIN_MIN] or elbow_offset < params[P_OFFSET_MIN]
 
 
 @njit(cache=True)
-def elbow_advance(ns_wrapped, pose, memory, period, moved_tol):  # type: ignore[no-untyped-def]
+def elbow_advance(ns_wrapped, pose, memory, period, moved_tol):
     """One tick of the elbow memory: the arm angle unwrapped along the run (rad), the interval aged.
     Returns ``(ns, recompute)``: whether the continuity interval must be recomputed (none known and the
     last attempt ``period`` ticks old, or the tool moved by more than ``moved_tol`` and the interval is
@@ -322,7 +337,7 @@ def elbow_advance(ns_wrapped, pose, memory, period, moved_tol):  # type: ignore[
 
 
 @njit(cache=True)
-def elbow_bounds(ns, memory, ns0, params):  # type: ignore[no-untyped-def]
+def elbow_bounds(ns, memory, ns0, params):
     """``(rom_lo, rom_hi, empty, iv_lo, iv_hi, K)`` at arm angle ``ns`` (rad): the cached continuity
     interval moved by whole turns to be expressed around ``ns`` (none known, or a full circle: the
     circle centred on ``ns``) [E 9], ROM_t clipped to it [E 10], [E 11] (:func:`qpnso.elbow.rom.clipped_bounds`)
@@ -360,7 +375,7 @@ class LineTickBuffers:
 
 
 @njit(cache=True)
-def qp_torque(A, gravity, J, dq_cmd, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
+def qp_torque(A, gravity, J, dq_cmd, dq_meas, stiffness, dt, damping):
     """``τ = g(q) + Nᵀ τ_null`` (N·m, docs/method.md §2, §7) with the ``qp`` strategy's impedance
     :func:`qp_nullspace_torque`; ``A`` read by its upper triangle."""
     tau_null = qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping)
@@ -368,7 +383,7 @@ def qp_torque(A, gravity, J, dq_cmd, dq_meas, stiffness, dt, damping):  # type: 
 
 
 @njit(cache=True)
-def qp_command(flat, offsets, q, dq, dq_meas, stiffness, dt, damping):  # type: ignore[no-untyped-def]
+def qp_command(flat, offsets, q, dq, dq_meas, stiffness, dt, damping):
     """The ``qp`` strategy's command for the velocity ``dq`` (rad/s): ``(q_des = q + dt·dq`` rad,
     ``τ`` N·m of :func:`qp_torque`), with A(q), g(q) and J from the stacked state ``flat``."""
     _, _, J, _, _, _, _, _, _, A, gravity, _ = state_views(flat, offsets)
@@ -376,14 +391,38 @@ def qp_command(flat, offsets, q, dq, dq_meas, stiffness, dt, damping):  # type: 
 
 
 @njit(cache=True)
-def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, advance, gains, qp_tol, identity,
-            step, line, H, g, C, l, u, box_l, box_u):  # type: ignore[no-untyped-def]
+def qp_tick(
+    q,
+    flat,
+    offsets,
+    limits,
+    R_ref,
+    p_ref,
+    twist,
+    memory,
+    ns0,
+    elbow,
+    advance,
+    gains,
+    qp_tol,
+    identity,
+    step,
+    line,
+    H,
+    g,
+    C,
+    l,
+    u,
+    box_l,
+    box_u,
+):
     """The ``qp`` strategy's tick up to its level-2 QP, in one call: the compiled tick (module doc).
 
     ``flat`` the stacked CasADi state at ``q`` (:class:`qpnso.control.state.StateEvaluator`, cut at
     ``offsets``); ``limits`` (7, n) the rows q_low, q_high (``q`` as checked), q_min, q_max (rad),
-    dq_max (rad/s), the accepted q_low, q_high (rad: beyond, :data:`TICK_Q_REFUSED`); ``memory``/``elbow`` of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the
-    ROM centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
+    dq_max (rad/s), the accepted q_low, q_high (rad: beyond, :data:`TICK_Q_REFUSED`); ``memory``/``elbow``
+    of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the ROM centre (rad); ``advance`` False
+    after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
     ``gains`` = (pose gain K_p 1/s, joint-limit gain 1/s, cost gain, null-space speed max rad/s, filter α,
     elbow gain 1/s, slack scale 1/√(2ρ), recovery speed rad/s, pose correction's speed caps m/s and rad/s,
     ½dt s); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ);
@@ -409,8 +448,9 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     unsafe = sanitize_state(flat, offsets)
     if unsafe & FLAG_INTERNAL_ERROR:
         return (TICK_STATE_NOT_FINITE,) + nothing[1:]
-    R, p, J, cost, cost_gradient, ns_wrapped, ns_gradient, wrist_sin, elbow_offset, _, _, drift = \
-        state_views(flat, offsets)
+    R, p, J, cost, cost_gradient, ns_wrapped, ns_gradient, wrist_sin, elbow_offset, _, _, drift = state_views(
+        flat, offsets
+    )
     if arm_angle_singular(wrist_sin, elbow_offset, elbow):
         return (TICK_ELBOW_DROPPED,) + nothing[1:]
     if advance:
@@ -438,8 +478,23 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
     step[:] = low_pass(step, cost_step(J, cost_gradient, gains[2], gains[3]), gains[4])  # level 2
     lo, hi = elbow_row_bounds(ns, rom_lo, rom_hi, gains[5], gains[7])
     H[:], g[:], C[:], l[:], u[:], box_l[:], box_u[:], _ = line_qp_arrays(
-        d, x0, t_lo, t_hi, np.zeros((0, n)), np.zeros(0), identity, step, ns_gradient.reshape(1, n), lo, hi,
-        1, gains[6], reg, rank_tol, damping)
+        d,
+        x0,
+        t_lo,
+        t_hi,
+        np.zeros((0, n)),
+        np.zeros(0),
+        identity,
+        step,
+        ns_gradient.reshape(1, n),
+        lo,
+        hi,
+        1,
+        gains[6],
+        reg,
+        rank_tol,
+        damping,
+    )
     if not qp_data_finite(H, g, C, l, u, box_l, box_u):  # (a huge finite twist can overflow)
         return TICK_QP_NOT_FINITE, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, 0.0, cost, bits
     line[0], line[1], line[2] = x0, d, x1
@@ -447,8 +502,30 @@ def qp_tick(q, flat, offsets, limits, R_ref, p_ref, twist, memory, ns0, elbow, a
 
 
 @njit(cache=True)
-def qp_tick_answer(v, line, box_l, box_u, C, l, u, feasibility_tol, flat, offsets, q, dq_meas, stiffness, dt,
-                   damping, residual, bits, tau_limit, dq_max, ns, rom_lo, rom_hi):  # type: ignore[no-untyped-def]
+def qp_tick_answer(
+    v,
+    line,
+    box_l,
+    box_u,
+    C,
+    l,
+    u,
+    feasibility_tol,
+    flat,
+    offsets,
+    q,
+    dq_meas,
+    stiffness,
+    dt,
+    damping,
+    residual,
+    bits,
+    tau_limit,
+    dq_max,
+    ns,
+    rom_lo,
+    rom_hi,
+):
     """The compiled tick after its level-2 QP: the answer ``v = [t; σ]`` judged
     (:func:`qpnso.qp.line.checked_line_answer`), the command, and every tick's last step
     (:func:`finish_command`, g(q) from ``flat``).  Returns ``(code, dq rad/s, q_des rad, τ N·m, status
@@ -460,6 +537,7 @@ def qp_tick_answer(v, line, box_l, box_u, C, l, u, feasibility_tol, flat, offset
         return code, x, x, x, bits
     q_des, tau = qp_command(flat, offsets, q, x, dq_meas, stiffness, dt, damping)
     bits |= answer_bits(residual, slack.max())
-    bits |= finish_command(q, x, q_des, tau, flat[offsets[9]:offsets[10]], tau_limit, dq_max, dt, ns, rom_lo,
-                           rom_hi, False)
+    bits |= finish_command(
+        q, x, q_des, tau, flat[offsets[9] : offsets[10]], tau_limit, dq_max, dt, ns, rom_lo, rom_hi, False
+    )
     return code, x, q_des, tau, bits

@@ -88,8 +88,15 @@ class Trajectory:
         mats = rot.as_matrix()
         omega = np.einsum("kij,kj->ki", mats[:-1], rotvec) / np.diff(t)[:, None]
         coef = CubicSpline(t, p, axis=0).c  # (4, N-1, 3), highest power first
-        for name, value in (("t", t), ("position", p), ("quaternion", q), ("_rotation", mats),
-                            ("_omega", omega), ("_rotvec", rotvec), ("_coef", coef)):
+        for name, value in (
+            ("t", t),
+            ("position", p),
+            ("quaternion", q),
+            ("_rotation", mats),
+            ("_omega", omega),
+            ("_rotvec", rotvec),
+            ("_coef", coef),
+        ):
             value.flags.writeable = False
             object.__setattr__(self, name, value)
         object.__setattr__(self, "_tlist", t.tolist())
@@ -158,7 +165,7 @@ def _validated(t, position, quaternion, row: str) -> tuple[np.ndarray, np.ndarra
         if not shape_ok:
             want = "(N,)" if width is None else f"(N, {width})"
             raise TrajectoryError(f"{name} must have shape {want}, got {a.shape}")
-        bad = np.flatnonzero(~np.isfinite(a).reshape(len(a), -1).all(axis=1)) if a.size else []
+        bad: np.ndarray | list[int] = np.flatnonzero(~np.isfinite(a).reshape(len(a), -1).all(axis=1)) if a.size else []
         if len(bad):
             raise TrajectoryError(f"{name}: {row} {bad[0] + 1} is not finite (NaN or inf)")
         arrays.append(a)
@@ -171,13 +178,17 @@ def _validated(t, position, quaternion, row: str) -> tuple[np.ndarray, np.ndarra
     if bad.size:
         k = bad[0] + 1
         kind = "repeats" if t[k] == t[k - 1] else "is earlier than"
-        raise TrajectoryError(f"time must be strictly increasing: {row} {k + 1} (t={float(t[k])!r}) {kind} "
-                              f"{row} {k} (t={float(t[k - 1])!r})")  # float: no np.float64(...) in the text
+        raise TrajectoryError(
+            f"time must be strictly increasing: {row} {k + 1} (t={float(t[k])!r}) {kind} "
+            f"{row} {k} (t={float(t[k - 1])!r})"
+        )  # float: no np.float64(...) in the text
     norms = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE)
     if bad.size:
-        raise TrajectoryError(f"quaternion of {row} {bad[0] + 1} has norm {norms[bad[0]]:.6g}, "
-                              f"not within {QUATERNION_NORM_TOLERANCE} of 1")
+        raise TrajectoryError(
+            f"quaternion of {row} {bad[0] + 1} has norm {norms[bad[0]]:.6g}, "
+            f"not within {QUATERNION_NORM_TOLERANCE} of 1"
+        )
     q = q / norms[:, None]
     flips = np.concatenate([[False], np.einsum("ij,ij->i", q[1:], q[:-1]) < 0])
     signs = np.where(np.logical_xor.accumulate(flips), -1.0, 1.0)
@@ -235,8 +246,7 @@ def _parse(text: str, path: Path, row: int, column: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise TrajectoryError(f"{path}: data row {row}, column {column!r}: cannot parse {text!r} "
-                              "as a number") from None
+        raise TrajectoryError(f"{path}: data row {row}, column {column!r}: cannot parse {text!r} as a number") from None
     if not math.isfinite(value):
         raise TrajectoryError(f"{path}: data row {row}, column {column!r}: {text.strip()!r} is not finite")
     return value
@@ -287,8 +297,9 @@ def min_jerk(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return tau**3 * (10 - 15 * tau + 6 * tau**2), 30 * tau**2 * (1 - tau) ** 2
 
 
-def _segment(curve: Callable[[np.ndarray], np.ndarray], dt: float, *, speed: float | None = None,
-             duration: float | None = None) -> np.ndarray:
+def _segment(
+    curve: Callable[[np.ndarray], np.ndarray], dt: float, *, speed: float | None = None, duration: float | None = None
+) -> np.ndarray:
     """Positions (M+1, 3) at period ``dt`` of ``curve(σ)`` under the min-jerk scaling.
 
     The duration is ``duration`` or, with ``speed``, the shortest one whose peak
@@ -300,8 +311,10 @@ def _segment(curve: Callable[[np.ndarray], np.ndarray], dt: float, *, speed: flo
         sig, dsig = min_jerk(tau)
         h = 1e-6
         dg = np.linalg.norm(curve(np.clip(sig + h, 0, 1)) - curve(np.clip(sig - h, 0, 1)), axis=1) / (
-            np.clip(sig + h, 0, 1) - np.clip(sig - h, 0, 1))
+            np.clip(sig + h, 0, 1) - np.clip(sig - h, 0, 1)
+        )
         duration = float(np.max(dg * dsig)) / speed * (1 + 1e-3)  # margin for the grid
+    assert duration is not None, "give speed or duration"
     if not duration > 0:
         raise TrajectoryError("a segment has zero length or duration")
     steps = max(1, math.ceil(duration / dt - 1e-9))
@@ -335,8 +348,10 @@ def _pose_of(pose_or_center, orientation) -> tuple[np.ndarray, np.ndarray]:
     if p.shape != (3,) or not np.isfinite(p).all():
         raise TrajectoryError(f"centre must be a finite 3-vector (m) or a pinocchio.SE3, got {p}")
     if orientation is None:
-        raise TrajectoryError("orientation is required when the centre is a point "
-                              "(3x3 rotation matrix, quaternion qx,qy,qz,qw, or pass a pinocchio.SE3)")
+        raise TrajectoryError(
+            "orientation is required when the centre is a point "
+            "(3x3 rotation matrix, quaternion qx,qy,qz,qw, or pass a pinocchio.SE3)"
+        )
     o = np.asarray(orientation, dtype=float)
     if o.shape == (4,) and abs(np.linalg.norm(o) - 1) <= QUATERNION_NORM_TOLERANCE:
         return p, Rotation.from_quat(o).as_matrix()
@@ -345,7 +360,7 @@ def _pose_of(pose_or_center, orientation) -> tuple[np.ndarray, np.ndarray]:
     raise TrajectoryError(f"orientation must be a rotation matrix or a unit quaternion, got {o.tolist()}")
 
 
-def _check_positive(**values: float) -> None:
+def _check_positive(**values: float | None) -> None:
     for name, v in values.items():
         if v is not None and not (math.isfinite(v) and v > 0):
             raise TrajectoryError(f"{name} must be positive and finite, got {v}")
@@ -380,8 +395,7 @@ def parabola(sigma: np.ndarray, half_width: float) -> np.ndarray:
     return half_width * (u * e1 + u**2 * e2)
 
 
-def guidance_path(center, size: float = 0.10, speed: float = 0.05, orientation=None,
-                  dt: float = 0.01) -> Trajectory:
+def guidance_path(center, size: float = 0.10, speed: float = 0.05, orientation=None, dt: float = 0.01) -> Trajectory:
     """The elbow paper's guidance path ([E] Fig. 4), constant tool orientation.
 
     Four segments, each starting and ending at ``center`` (m, world) at rest: a
@@ -403,6 +417,7 @@ def guidance_path(center, size: float = 0.10, speed: float = 0.05, orientation=N
             out = np.tile(c, (len(np.atleast_1d(s)), 1))
             out[:, list(axes)] += lemniscate(np.atleast_1d(s), a)
             return out
+
         return curve
 
     curves = [in_plane(LEMNISCATE_PLANES[k]) for k in ("xy", "xz", "yz")]
@@ -410,8 +425,16 @@ def guidance_path(center, size: float = 0.10, speed: float = 0.05, orientation=N
     return _constant_orientation(_concatenate([_segment(g, dt, speed=speed) for g in curves]), rot, dt)
 
 
-def point_to_point(targets, *, peak_speed: float | None = None, duration_per_move: float | None = None,
-                   dwell: float = 0.5, lift: float = 0.03, orientation=None, dt: float = 0.01) -> Trajectory:
+def point_to_point(
+    targets,
+    *,
+    peak_speed: float | None = None,
+    duration_per_move: float | None = None,
+    dwell: float = 0.5,
+    lift: float = 0.03,
+    orientation=None,
+    dt: float = 0.01,
+) -> Trajectory:
     """Point-to-point tool moves between ``targets`` ((K, 3) m, world), as in [M] §V-B.
 
     The paper's subjects touched six targets in turn; it notes that such
@@ -444,6 +467,7 @@ def point_to_point(targets, *, peak_speed: float | None = None, duration_per_mov
         segments.append(_segment(curve, dt, speed=peak_speed, duration=duration_per_move))
         if dwell > 0 and k < len(pts) - 2:
             segments.append(np.tile(b, (max(1, round(dwell / dt)) + 1, 1)))
+    assert rot is not None  # targets has two points or more here, so a first one
     return _constant_orientation(_concatenate(segments), rot, dt)
 
 

@@ -41,7 +41,7 @@ which the arm angle is reported singular (``"elbow_straight"``)."""
 
 
 # ----------------------------------------------------------------- arm angle
-def _tcross(a, b) -> tuple[float, float, float]:  # type: ignore[no-untyped-def]
+def _tcross(a, b) -> tuple[float, float, float]:
     """Cross product of two 3-sequences as a tuple (plain floats: fast for one pair)."""
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
@@ -51,7 +51,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array(_tcross(a, b))
 
 
-def _dot(a, b) -> float:  # type: ignore[no-untyped-def]
+def _dot(a, b) -> float:
     return float(a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
 
 
@@ -65,7 +65,7 @@ _FLOAT_OPS = (
 _CASADI_OPS = (lambda a, b: a - b, ca.cross, ca.dot, ca.norm_2, ca.atan2)
 
 
-def _arm_angle_terms(ps, pe, pw, z0, ops):  # type: ignore[no-untyped-def]
+def _arm_angle_terms(ps, pe, pw, z0, ops):
     """[E 2]–[E 4] written once for NumPy and CasADi.
 
     Returns ``(ns, wrist_sin, elbow_offset)``: the arm angle (rad), the sine of
@@ -101,7 +101,7 @@ class ElbowPoints:
 
     def world(self, data: pin.Data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World positions (m) of ``p_s, p_e, p_w`` after ``pin.forwardKinematics``."""
-        return tuple(  # type: ignore[return-value]
+        return tuple(
             data.oMi[j].act(np.asarray(off)) if any(off) else data.oMi[j].translation
             for j, off in (
                 (self.shoulder_joint, self.shoulder_offset),
@@ -138,7 +138,7 @@ class ArmAngle:
         return self.status == "ok"
 
 
-def _cached(cache: weakref.WeakKeyDictionary, robot: Robot, build):  # type: ignore[no-untyped-def]
+def _cached(cache: weakref.WeakKeyDictionary, robot: Robot, build):
     value = cache.get(robot)
     if value is None:
         value = build(robot)

@@ -30,6 +30,7 @@ to about 1e-9 rad.  Excursions past a limit shorter than one step
 from __future__ import annotations
 
 import math
+from collections.abc import Container
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,16 +44,16 @@ from qpnso.elbow.arm_angle import (
     arm_angle_status,
 )
 from qpnso.elbow.srs import (
-    SelfMotion,
     _CONST,
     _KIND,
     _TAN,
+    SelfMotion,
     _branch_of,
     _self_motion_rows,
-    srs_geometry,
     as_pose,
     is_srs,
     self_motion,
+    srs_geometry,
 )
 from qpnso.errors import SingularityError
 from qpnso.model.robot import Robot
@@ -108,7 +109,7 @@ class Interval:
         return (ns - self.lo + tol) % TWO_PI <= self.hi - self.lo + 2 * tol
 
 
-def wrap(angle):  # type: ignore[no-untyped-def]
+def wrap(angle):
     """Angle(s) (rad, float or array) wrapped into [-π, π)."""
     return (angle + math.pi) % TWO_PI - math.pi
 
@@ -151,8 +152,18 @@ def _row_table(sign: np.ndarray, q_min: np.ndarray, q_max: np.ndarray) -> tuple[
             for bound, theta in enumerate((float(q_min[k]), float(q_max[k]))):
                 if tangent or theta * s >= 0:  # θ = s·acos(x) never reaches a bound of the other sign
                     phi = s * theta
-                    rows.append(_LimitRow(k, tangent, math.cos(phi), math.sin(phi), math.cos(theta),
-                                          s if tangent else -s, bound == 1, Cause("limit", k, _BOUNDS[bound])))
+                    rows.append(
+                        _LimitRow(
+                            k,
+                            tangent,
+                            math.cos(phi),
+                            math.sin(phi),
+                            math.cos(theta),
+                            s if tangent else -s,
+                            bound == 1,
+                            Cause("limit", k, _BOUNDS[bound]),
+                        )
+                    )
         table = _TABLES[key] = tuple(rows)
     return table
 
@@ -181,8 +192,10 @@ def _crossings(row: _LimitRow, num: list[float], den: list[float], genuine_only:
     out = []
     for x, rate in ((base + delta, -slope), (base - delta, slope)):
         sx, cx = math.sin(x), math.cos(x)
-        if genuine_only and row.tangent and not (
-            (num[0] * sx + num[1] * cx + num[2]) * sp + (den[0] * sx + den[1] * cx + den[2]) * cp > 0
+        if (
+            genuine_only
+            and row.tangent
+            and not ((num[0] * sx + num[1] * cx + num[2]) * sp + (den[0] * sx + den[1] * cx + den[2]) * cp > 0)
         ):
             continue
         df = a * cx - b * sx
@@ -190,7 +203,7 @@ def _crossings(row: _LimitRow, num: list[float], den: list[float], genuine_only:
     return out
 
 
-def _singular_cuts(den: list[list[float]], joints: object = (1, 5)) -> list[tuple[int, float]]:
+def _singular_cuts(den: list[list[float]], joints: Container[int] = (1, 5)) -> list[tuple[int, float]]:
     """``(k, ns)`` where joint k (2 or 6, 0-based 1 or 5) passes through 0: ``cos θ_k`` reaches 1."""
     out = []
     for k in (1, 5):
@@ -201,7 +214,7 @@ def _singular_cuts(den: list[list[float]], joints: object = (1, 5)) -> list[tupl
     return out
 
 
-def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):  # type: ignore[no-untyped-def]
+def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):
     """Sorted, de-duplicated cut points in [-π, π) and a function naming each cut's cause.
 
     Returns ``(angles, labels, hard, cause)``: ``labels[i]`` indexes the limit
@@ -211,12 +224,12 @@ def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
     num, den, wanted = sm.num.tolist(), sm.den.tolist(), set(joints.tolist())
     roots = [(i, _crossings(t, num[t.joint], den[t.joint], False)) for i, t in enumerate(table) if t.joint in wanted]
     found = [(i, r) for i, r in roots if r]
-    ang = [r[0][0] for _, r in found] + [r[1][0] for _, r in found]  # all "+" roots, then all "−" roots
-    lab = [i for i, _ in found] * 2
+    roots_ns = [r[0][0] for _, r in found] + [r[1][0] for _, r in found]  # all "+" roots, then all "−" roots
+    row_labels = [i for i, _ in found] * 2
     for k, x in _singular_cuts(den, wanted):
-        ang.append(x)
-        lab.append(-1 - k)
-    ang, lab = wrap(np.array(ang, dtype=float)), np.array(lab, dtype=int)
+        roots_ns.append(x)
+        row_labels.append(-1 - k)
+    ang, lab = wrap(np.array(roots_ns, dtype=float)), np.array(row_labels, dtype=int)
     order = np.lexsort((lab >= 0, ang))  # singular first among equal angles
     ang, lab = ang[order], lab[order]
     if ang.size > 1:
@@ -231,7 +244,7 @@ def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
     return ang, lab, lab < 0, cause
 
 
-def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):  # type: ignore[no-untyped-def]
+def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):
     """Feasible arcs ``[(lo, hi, lo_cause, hi_cause)]`` for the given joints (0-based).
 
     The full circle is ``(-π, π, None, None)``.
@@ -262,8 +275,9 @@ def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
     return sorted(arcs, key=lambda arc: arc[0])
 
 
-def _closed_form_interval(num: list, den: list, sign: np.ndarray, ns0: float, q_min: np.ndarray,
-                          q_max: np.ndarray) -> Interval:
+def _closed_form_interval(
+    num: list, den: list, sign: np.ndarray, ns0: float, q_min: np.ndarray, q_max: np.ndarray
+) -> Interval:
     """[E 9] directly: the nearest genuine exit crossing (or singular cut) on each side of ``ns0``.
 
     ``num``, ``den``, ``sign``: the :class:`SelfMotion` rows (plain floats).
@@ -274,7 +288,8 @@ def _closed_form_interval(num: list, den: list, sign: np.ndarray, ns0: float, q_
     """
     table = _row_table(sign, q_min, q_max)
     n = len(table)
-    hi = lo = (math.inf, 0, None)  # (distance from ns0, tie-break order, cause)
+    hi: tuple[float, int, Cause | None] = (math.inf, 0, None)  # (distance from ns0, tie-break order, cause)
+    lo = hi
     for i, t in enumerate(table):
         for j, (x, slope) in enumerate(_crossings(t, num[t.joint], den[t.joint], True)):
             ahead = (x - ns0) % TWO_PI  # behind = 2π − ahead; ends within 1e-9 of ns0 count as 0
@@ -373,13 +388,15 @@ def _null_direction(robot: Robot, q: np.ndarray, prev: np.ndarray, sigma_min: fl
     return n if n @ prev >= 0 else -n
 
 
-def _crossing(robot: Robot, q_in: np.ndarray, q_out: np.ndarray, target: pin.SE3, tol: float) -> tuple[np.ndarray, Cause]:
+def _crossing(
+    robot: Robot, q_in: np.ndarray, q_out: np.ndarray, target: pin.SE3, tol: float
+) -> tuple[np.ndarray, Cause]:
     """Exact first limit crossing between a feasible and an infeasible configuration."""
     over = np.maximum(q_out - robot.q_max, 0) + np.maximum(robot.q_min - q_out, 0)
     frac = np.full(robot.nq, np.inf)
-    for k in np.flatnonzero(over > 0):
-        limit = robot.q_max[k] if q_out[k] > robot.q_max[k] else robot.q_min[k]
-        frac[k] = (limit - q_in[k]) / (q_out[k] - q_in[k])
+    for j in np.flatnonzero(over > 0):
+        limit = robot.q_max[j] if q_out[j] > robot.q_max[j] else robot.q_min[j]
+        frac[j] = (limit - q_in[j]) / (q_out[j] - q_in[j])
     k = int(np.argmin(frac))
     bound = "max" if q_out[k] > robot.q_max[k] else "min"
     q = q_in + frac[k] * (q_out - q_in)
@@ -388,8 +405,9 @@ def _crossing(robot: Robot, q_in: np.ndarray, q_out: np.ndarray, target: pin.SE3
     return q, Cause("limit", k, bound)
 
 
-def _walk(robot: Robot, q0: np.ndarray, ns0: float, direction: np.ndarray, target: pin.SE3,
-          opt: NumericalOptions) -> tuple[float, Cause | None, np.ndarray]:
+def _walk(
+    robot: Robot, q0: np.ndarray, ns0: float, direction: np.ndarray, target: pin.SE3, opt: NumericalOptions
+) -> tuple[float, Cause | None, np.ndarray]:
     """Follow the self-motion from ``q0`` along ``direction``: unwrapped ns at the end, its cause, q there."""
     q, ns, d = q0.copy(), ns0, direction
     for _ in range(opt.max_steps):
@@ -432,4 +450,3 @@ def numerical_interval(robot: Robot, q: object, options: NumericalOptions | None
     if hi - lo > TWO_PI:
         lo = hi - TWO_PI
     return Interval(min(lo, ns0), max(hi, ns0), False, "numerical", lo_c, hi_c, lo_q, hi_q)
-

@@ -14,8 +14,8 @@ from functools import cached_property
 import numpy as np
 from numba import njit
 
-from qpnso.errors import ConfigError, InputError
 from qpnso.elbow.intervals import Interval
+from qpnso.errors import ConfigError, InputError
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,9 @@ class ElbowConfig:
     d: float | None = None
 
     def __post_init__(self) -> None:
-        values = {k: getattr(self, k) for k in ("half_width_deg", "safety_margin_deg", "stiffness_min", "stiffness_max")}
+        values = {
+            k: getattr(self, k) for k in ("half_width_deg", "safety_margin_deg", "stiffness_min", "stiffness_max")
+        }
         for key, value in values.items():
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise ConfigError(f"ElbowConfig.{key} must be a finite number >= 0, got {value!r}")
@@ -120,8 +122,9 @@ def clip_rom(ns0: float, half_width: float, interval: Interval, margin: float) -
 
 
 @njit(cache=True)
-def clipped_bounds(ns0: float, half_width: float, lo: float, hi: float, full_circle: bool,
-                   margin: float) -> tuple[float, float, bool]:
+def clipped_bounds(
+    ns0: float, half_width: float, lo: float, hi: float, full_circle: bool, margin: float
+) -> tuple[float, float, bool]:
     """The arithmetic of :func:`clip_rom` on plain floats (rad), inputs taken as valid:
     ``(lo, hi, empty)`` of ROM_t for the interval ``[lo, hi]`` (the controller's per-tick kernel)."""
     centre = 0.5 * (lo + hi)
@@ -149,7 +152,7 @@ def stiffness(ns: float | np.ndarray, ns0: float, cfg: ElbowConfig) -> float | n
 
 
 @njit(cache=True)
-def sigmoid_stiffness(ns, ns0, k_min, k_max, alpha, d):  # type: ignore[no-untyped-def]
+def sigmoid_stiffness(ns, ns0, k_min, k_max, alpha, d):
     """:func:`stiffness` of an arm angle or an array of them (rad) from plain parameters (N·m/rad,
     1/rad, rad): the per-tick kernel.  ``1/(1 + eˣ) = ½(1 − tanh(x/2))``, which cannot overflow."""
     x = alpha * (d - np.abs(ns - ns0))

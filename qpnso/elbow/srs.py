@@ -21,8 +21,9 @@ from __future__ import annotations
 import itertools
 import math
 import weakref
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 import pinocchio as pin
@@ -59,7 +60,8 @@ class Branch:
         if isinstance(value, Branch):
             return value
         try:
-            signs = [int(v) if float(v) == int(v) else v for v in value]  # type: ignore[union-attr]
+            # any object: one that is not a sequence of numbers raises TypeError or ValueError here
+            signs = [int(v) if float(v) == int(v) else v for v in cast(Iterable[Any], value)]
         except (TypeError, ValueError):
             raise InputError(f"branch must be a Branch or three signs (±1, ±1, ±1), got {value!r}") from None
         if len(signs) != 3:
@@ -144,13 +146,18 @@ def _build_srs_geometry(robot: Robot) -> SrsGeometry:
     line_dir, origin = axes[0], origins[0]
     for k in (0, 2, 4, 6):  # joints 1, 3, 5, 7: on the arm line
         off = origins[k] - origin
-        if np.linalg.norm(_cross(axes[k], line_dir)) > GEOMETRY_TOL or np.linalg.norm(_cross(off, line_dir)) > GEOMETRY_TOL:
+        if (
+            np.linalg.norm(_cross(axes[k], line_dir)) > GEOMETRY_TOL
+            or np.linalg.norm(_cross(off, line_dir)) > GEOMETRY_TOL
+        ):
             raise ModelError(f"{name}: axis of joint {k + 1} is not on the line of joint 1 at q = 0 (not S-R-S)")
     ey = axes[1]
     for k in (1, 3, 5):  # joints 2, 4, 6: perpendicular, parallel to each other
         if abs(float(axes[k] @ line_dir)) > GEOMETRY_TOL or np.linalg.norm(_cross(axes[k], ey)) > GEOMETRY_TOL:
-            raise ModelError(f"{name}: axis of joint {k + 1} is not perpendicular to the arm line and parallel "
-                             "to joint 2 at q = 0 (not S-R-S)")
+            raise ModelError(
+                f"{name}: axis of joint {k + 1} is not perpendicular to the arm line and parallel "
+                "to joint 2 at q = 0 (not S-R-S)"
+            )
     p_s, p_e, p_w = (_line_point(origin, line_dir, origins[k], axes[k], k + 1, name) for k in (1, 3, 5))
     upper, fore = float(np.linalg.norm(p_e - p_s)), float(np.linalg.norm(p_w - p_e))
     if upper < 1e-6 or fore < 1e-6:
@@ -165,17 +172,26 @@ def _build_srs_geometry(robot: Robot) -> SrsGeometry:
         raise ModelError(f"{name}: the tool frame must be attached to joint 7 for the closed form")
     o_t = data.oMf[robot.tool_frame_id]
     points = ElbowPoints(
-        2, 4, 6,
-        *(tuple(float(x) for x in data.oMi[j].actInv(p)) for j, p in ((2, p_s), (4, p_e), (6, p_w))),
+        2,
+        4,
+        6,
+        *(_floats3(data.oMi[j].actInv(p)) for j, p in ((2, p_s), (4, p_e), (6, p_w))),
     )
     wrist_in_tool = o_t.rotation.T @ (p_w - o_t.translation)
     tool_to_wrist = np.eye(4)
     tool_to_wrist[:3, :3], tool_to_wrist[:3, 3] = o_t.rotation.T @ frame, wrist_in_tool
     return SrsGeometry(
-        frame=frame, axis_sign=axis_sign, upper_arm_m=upper, forearm_m=fore, p_s=p_s,
-        wrist_in_tool=wrist_in_tool, tool_rotation0=o_t.rotation.copy(), points=points,
-        shoulder_from_world=np.column_stack([frame.T, -frame.T @ p_s]), tool_to_wrist=tool_to_wrist,
-        vertical=tuple(float(x) for x in frame.T @ Z0),
+        frame=frame,
+        axis_sign=axis_sign,
+        upper_arm_m=upper,
+        forearm_m=fore,
+        p_s=p_s,
+        wrist_in_tool=wrist_in_tool,
+        tool_rotation0=o_t.rotation.copy(),
+        points=points,
+        shoulder_from_world=np.column_stack([frame.T, -frame.T @ p_s]),
+        tool_to_wrist=tool_to_wrist,
+        vertical=_floats3(frame.T @ Z0),
     )
 
 
@@ -247,6 +263,11 @@ class SelfMotion:
 _Vec = tuple[float, float, float]
 
 
+def _floats3(v: Sequence[float]) -> _Vec:
+    """A 3-vector as a tuple of plain floats."""
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
 def _scaled(k: float, v: Sequence[float]) -> _Vec:
     return (k * v[0], k * v[1], k * v[2])
 
@@ -268,7 +289,9 @@ def _r03_transposed(v: Sequence[float], sin_a: float, cos_a: float, k_x: float, 
     return (k_x * e[0], k_x * e[1], k_x * e[2] + k_y * r), (-k_y * e[1], k_y * e[0], 0.0), e
 
 
-def _rotation_coefficients(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[tuple, tuple, float]:
+def _rotation_coefficients(
+    g: SrsGeometry, pose: pin.SE3, b: Branch
+) -> tuple[tuple[tuple, tuple], tuple[tuple, tuple], float]:
     """Last column and last row of ``R03`` and ``R47`` (canonical frame), affine in ``(sin ns, cos ns, 1)``.
 
     Returns ``(r03, r47, q4)``: each block is ``(col, row)`` with ``col[i]`` the

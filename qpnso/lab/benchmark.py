@@ -63,7 +63,7 @@ def bench_cost(robot: Robot, n: int = 5000, seed: int = 0) -> list[Timing]:
     from qpnso.model.codegen import compile_mode
 
     out = []
-    for mode in (("background", "off") if compile_mode() != "off" else ("off",)):
+    for mode in ("background", "off") if compile_mode() != "off" else ("off",):
         cost = CostModel(robot, CostWeights(mass=1, friction_force=1), compile=mode)
         compiled = cost.wait_compiled()
         note = "compiled C" if compiled else "CasADi VM"
@@ -84,11 +84,11 @@ def bench_cost(robot: Robot, n: int = 5000, seed: int = 0) -> list[Timing]:
 
 def bench_interval(robot: Robot, n: int = 1000, seed: int = 0) -> list[Timing]:
     """``continuity_interval`` at ``n`` random configurations within the limits."""
-    from qpnso.errors import QpnsoError
     from qpnso.elbow.intervals import continuity_interval
+    from qpnso.errors import QpnsoError
 
     rng = np.random.default_rng(seed)
-    qs = []
+    qs: list[np.ndarray] = []
     while len(qs) < n:
         q = robot.random_q(rng, margin=0.05)
         try:
@@ -96,8 +96,13 @@ def bench_interval(robot: Robot, n: int = 1000, seed: int = 0) -> list[Timing]:
         except QpnsoError:  # singular arm angle: not a timing case
             continue
         qs.append(q)
-    return [Timing("continuity_interval", time_calls(lambda i: continuity_interval(robot, qs[i % n]), n, warmup=20),
-                   note="random q")]
+    return [
+        Timing(
+            "continuity_interval",
+            time_calls(lambda i: continuity_interval(robot, qs[i % n]), n, warmup=20),
+            note="random q",
+        )
+    ]
 
 
 def held_tool_ticks(ctrl, q0: np.ndarray) -> Callable[[int], np.ndarray]:
@@ -115,6 +120,7 @@ def held_tool_ticks(ctrl, q0: np.ndarray) -> Callable[[int], np.ndarray]:
             times[i] = time.perf_counter() - t0
             q = q + dt * cmd.dq
         return times
+
     return ticks
 
 
@@ -131,8 +137,8 @@ def interleaved(runs: dict[str, Callable[[int], np.ndarray]], n: int, chunk: int
 def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None = None) -> list[Timing]:
     """``Controller.step`` per strategy, tool held, from the sample configuration, with Pink's
     ``solve_ik`` for reference when installed; the rows are timed in turns (:func:`interleaved`)."""
-    from qpnso.control.controller import Controller
     from qpnso.control.config import STRATEGIES, ControllerConfig
+    from qpnso.control.controller import Controller
 
     strategies = strategies or STRATEGIES
     q0 = robot.sample_configuration()

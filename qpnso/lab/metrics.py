@@ -14,8 +14,7 @@ import numpy as np
 from qpnso.errors import InputError
 
 
-def _array(x, name: str, ndim: int, width: int | None = None, min_len: int = 1,
-           allow_inf: bool = False) -> np.ndarray:
+def _array(x, name: str, ndim: int, width: int | None = None, min_len: int = 1, allow_inf: bool = False) -> np.ndarray:
     try:
         a = np.asarray(x, dtype=float)
     except (TypeError, ValueError):
@@ -27,8 +26,9 @@ def _array(x, name: str, ndim: int, width: int | None = None, min_len: int = 1,
         raise InputError(f"{name} needs at least {min_len} samples, got {len(a)}")
     ok = ~np.isnan(a) if allow_inf else np.isfinite(a)
     if not ok.all():
-        raise InputError(f"{name} contains NaN{'' if allow_inf else ' or inf'} "
-                         f"(first at index {np.argwhere(~ok)[0][0]})")
+        raise InputError(
+            f"{name} contains NaN{'' if allow_inf else ' or inf'} (first at index {np.argwhere(~ok)[0][0]})"
+        )
     return a
 
 
@@ -57,8 +57,10 @@ def constraint_proximity(ns, lo, hi) -> float:
     when ``ns`` left the interval.
     """
     a = _array(ns, "ns", 1)
-    lo, hi = (_array(np.broadcast_to(np.asarray(b, dtype=float), a.shape) if np.ndim(b) == 0 else b, name, 1,
-                     allow_inf=True) for b, name in ((lo, "lo"), (hi, "hi")))
+    lo, hi = (
+        _array(np.broadcast_to(np.asarray(b, dtype=float), a.shape) if np.ndim(b) == 0 else b, name, 1, allow_inf=True)
+        for b, name in ((lo, "lo"), (hi, "hi"))
+    )
     _same_length(ns=a, lo=lo, hi=hi)
     return float(np.min(np.minimum(a - lo, hi - a)))
 
@@ -75,8 +77,10 @@ def uniform_period(t, rtol: float = 1e-6) -> float:
     d = np.diff(a)
     dt = (a[-1] - a[0]) / (len(a) - 1)
     if not dt > 0 or np.max(np.abs(d - dt)) > rtol * dt:
-        raise InputError(f"t must be uniformly sampled and increasing (period {dt:.6g} s; "
-                         f"deviation {np.max(np.abs(d - dt)):.3g} s); resample first")
+        raise InputError(
+            f"t must be uniformly sampled and increasing (period {dt:.6g} s; "
+            f"deviation {np.max(np.abs(d - dt)):.3g} s); resample first"
+        )
     return float(dt)
 
 
@@ -177,8 +181,9 @@ def timing_summary(seconds) -> dict[str, float]:
     return {"median_us": float(p50), "p95_us": float(p95), "p99_us": float(p99), "max_us": float(a.max())}
 
 
-def summarize_run(arrays: Mapping[str, np.ndarray],
-                  status_flags: Mapping[str, int] | None = None, dt: float | None = None) -> dict[str, float]:
+def summarize_run(
+    arrays: Mapping[str, np.ndarray], status_flags: Mapping[str, int] | None = None, dt: float | None = None
+) -> dict[str, float]:
     """Flat dict of the run metrics from per-tick arrays (e.g. ``RunResult.arrays``).
 
     Uses whichever of these keys are present (names of ``qpnso.control.offline.RESULT_KEYS``
@@ -208,8 +213,10 @@ def summarize_run(arrays: Mapping[str, np.ndarray],
     out: dict[str, float] = {"duration_s": float(t[-1] - t[0]), "ticks": float(len(t))}
     if has("ns"):
         out["elbow_mobility_deg"] = float(np.degrees(elbow_mobility(arrays["ns"])))
-        for key, lo, hi in (("constraint_proximity_deg", "interval_lo", "interval_hi"),
-                            ("rom_proximity_deg", "rom_lo", "rom_hi")):
+        for key, lo, hi in (
+            ("constraint_proximity_deg", "interval_lo", "interval_hi"),
+            ("rom_proximity_deg", "rom_lo", "rom_hi"),
+        ):
             if has(lo, hi):
                 out[key] = float(np.degrees(constraint_proximity(arrays["ns"], arrays[lo], arrays[hi])))
     if has("tool_position"):
@@ -221,8 +228,10 @@ def summarize_run(arrays: Mapping[str, np.ndarray],
         out.update(tool_position_error_mean_m=float(e.mean()), tool_position_error_max_m=float(e.max()))
     elif has("tool_position", "ref_position"):
         err = tracking_error(arrays["ref_position"], arrays["tool_position"])
-        out.update(tool_position_error_mean_m=err["position_error_mean_m"],
-                   tool_position_error_max_m=err["position_error_max_m"])
+        out.update(
+            tool_position_error_mean_m=err["position_error_mean_m"],
+            tool_position_error_max_m=err["position_error_max_m"],
+        )
     if has("tool_rotation_error"):
         e = np.degrees(_array(arrays["tool_rotation_error"], "tool_rotation_error", 1))
         out.update(tool_rotation_error_mean_deg=float(e.mean()), tool_rotation_error_max_deg=float(e.max()))
@@ -245,6 +254,7 @@ def summarize_run(arrays: Mapping[str, np.ndarray],
             out["slow_ticks"] = float(np.count_nonzero(ticks > period))
         out["tick_time_max_ms"] = out["tick_time_max_us"] / 1000.0
     if has("hand_wrench", "tool_twist", "tool_position") and out.get("path_length_m", 0) > 0:
-        out["user_work_per_metre_N"] = user_work_per_metre(arrays["hand_wrench"], arrays["tool_twist"], t,
-                                                           arrays["tool_position"])
+        out["user_work_per_metre_N"] = user_work_per_metre(
+            arrays["hand_wrench"], arrays["tool_twist"], t, arrays["tool_position"]
+        )
     return out

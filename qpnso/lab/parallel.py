@@ -97,8 +97,9 @@ def read_checkpoint(out: Path, spec: RunSpec) -> dict[int, dict]:
     wanted = _normalise(spec.header())
     if header != wanted:
         diff = {k: (header.get(k), wanted[k]) for k in wanted if header.get(k) != wanted[k]}
+        differences = ", ".join(f"{k}: {a!r} there, {b!r} asked" for k, (a, b) in diff.items())
         raise ConfigError(
-            f"{out} holds a different run ({', '.join(f'{k}: {a!r} there, {b!r} asked' for k, (a, b) in diff.items())}); "
+            f"{out} holds a different run ({differences}); "
             "rerun with the same arguments to resume, or use another --out"
         )
     done: dict[int, dict] = {}
@@ -146,14 +147,14 @@ def call_job(job: Callable[[int, int], dict], seed: int, index: int) -> tuple[in
         raise JobError(f"job {index} failed: {type(exc).__name__}: {exc}\n{tail}") from None
 
 
-def _in_process(job, seed: int, pending: list[int], init) -> Iterator[tuple[int, dict]]:  # type: ignore[no-untyped-def]
+def _in_process(job, seed: int, pending: list[int], init) -> Iterator[tuple[int, dict]]:
     if init is not None:
         init()
     for i in pending:
         yield call_job(job, seed, i)
 
 
-def _pool(job, seed: int, pending: list[int], init, workers: int) -> Iterator[tuple[int, dict]]:  # type: ignore[no-untyped-def]
+def _pool(job, seed: int, pending: list[int], init, workers: int) -> Iterator[tuple[int, dict]]:
     with ProcessPoolExecutor(max_workers=workers, initializer=init) as pool:
         futures: set[Future] = {pool.submit(call_job, job, seed, i) for i in pending}
         try:
@@ -167,7 +168,7 @@ def _pool(job, seed: int, pending: list[int], init, workers: int) -> Iterator[tu
             pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _dask(job, seed: int, pending: list[int], scheduler: Any, spec: RunSpec) -> Iterator[tuple[int, dict]]:  # type: ignore[no-untyped-def]
+def _dask(job, seed: int, pending: list[int], scheduler: Any, spec: RunSpec) -> Iterator[tuple[int, dict]]:
     try:
         from distributed import Client, as_completed
     except ImportError:
@@ -219,8 +220,9 @@ def run_jobs(
     return [done[i] for i in range(spec.n_jobs)]
 
 
-def _collect(stream: Iterator[tuple[int, dict]], path: Path, done: dict[int, dict], spec: RunSpec,
-             progress: bool) -> None:
+def _collect(
+    stream: Iterator[tuple[int, dict]], path: Path, done: dict[int, dict], spec: RunSpec, progress: bool
+) -> None:
     bar = None
     if progress:
         from tqdm import tqdm

@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 
 from qpnso.elbow.arm_angle import arm_angle
+from qpnso.elbow.intervals import continuity_interval, feasible_intervals
+from qpnso.elbow.rom import ElbowConfig, clip_rom
 from qpnso.elbow.srs import branch, self_motion
 from qpnso.errors import InputError
-from qpnso.elbow.intervals import continuity_interval, feasible_intervals
 from qpnso.model.robot import Robot
-from qpnso.elbow.rom import ElbowConfig, clip_rom
 
 
-def _pyplot():  # type: ignore[no-untyped-def]
+def _pyplot():
     try:
         import matplotlib
     except ImportError:
@@ -26,7 +26,7 @@ def _pyplot():  # type: ignore[no-untyped-def]
     return plt
 
 
-def _shade(ax, arcs, color: str, alpha: float) -> None:  # type: ignore[no-untyped-def]
+def _shade(ax, arcs, color: str, alpha: float) -> None:
     """Shade arcs (rad, possibly crossing ±π) on an axis in degrees over [-180, 180]."""
     for lo, hi in arcs:
         for shift in (-2 * math.pi, 0.0, 2 * math.pi):
@@ -82,7 +82,11 @@ def plot_intervals(
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("arm angle ns (deg)")
     axes[-1].set_xlim(-180, 180)
-    width = "full circle" if interval.full_circle else f"[{math.degrees(interval.lo):.1f}, {math.degrees(interval.hi):.1f}] deg"
+    width = (
+        "full circle"
+        if interval.full_circle
+        else f"[{math.degrees(interval.lo):.1f}, {math.degrees(interval.hi):.1f}] deg"
+    )
     axes[0].set_title(
         f"{robot.name}: joints vs arm angle, branch {b.as_tuple()}, ns = {math.degrees(ns):.1f} deg, "
         f"interval {width}\n(green: Ψ, light green: joint within limits, orange: ROM_t, red: limits)",
@@ -96,7 +100,7 @@ def plot_intervals(
     return path
 
 
-def _save(fig, out: str | Path) -> Path:  # type: ignore[no-untyped-def]
+def _save(fig, out: str | Path) -> Path:
     """Write a figure atomically (temporary file, then rename) and close it."""
     from qpnso.control.offline import atomic_write
 
@@ -108,7 +112,7 @@ def _save(fig, out: str | Path) -> Path:  # type: ignore[no-untyped-def]
     return path
 
 
-def _run_panels(axes, arrays, label: str = "", color: str | None = None, bounds: bool = True) -> None:  # type: ignore[no-untyped-def]
+def _run_panels(axes, arrays, label: str = "", color: str | None = None, bounds: bool = True) -> None:
     """Arm angle with ROM_t and interval, stiffness, felt mass and friction over time."""
     t = np.asarray(arrays["t"])
     deg = np.degrees
@@ -131,7 +135,7 @@ def _run_panels(axes, arrays, label: str = "", color: str | None = None, bounds:
         ax.grid(alpha=0.3)
 
 
-def plot_run(arrays, out: str | Path = "run.png", title: str = "") -> Path:  # type: ignore[no-untyped-def]
+def plot_run(arrays, out: str | Path = "run.png", title: str = "") -> Path:
     """A run over time (like the elbow paper's Fig. 3): the arm angle with ROM_t
     and the continuity bounds, the elbow stiffness, the felt mass and friction
     force, and the 3-D tool path (reference dashed).  Writes a PNG."""
@@ -158,13 +162,12 @@ def plot_run(arrays, out: str | Path = "run.png", title: str = "") -> Path:  # t
     return _save(fig, out)
 
 
-def plot_comparison(runs: dict, out: str | Path = "comparison.png", title: str = "") -> Path:  # type: ignore[no-untyped-def]
+def plot_comparison(runs: dict, out: str | Path = "comparison.png", title: str = "") -> Path:
     """Several runs (name → arrays) side by side: one column per run, same panels."""
     plt = _pyplot()
     if not runs:
         raise InputError("plot_comparison needs at least one run")
-    fig, axes = plt.subplots(4, len(runs), figsize=(4 * len(runs) + 1, 8), sharex="col", sharey="row",
-                             squeeze=False)
+    fig, axes = plt.subplots(4, len(runs), figsize=(4 * len(runs) + 1, 8), sharex="col", sharey="row", squeeze=False)
     for col, (name, arrays) in enumerate(runs.items()):
         _run_panels(axes[:, col], arrays)
         axes[0, col].set_title(name, fontsize=10)

@@ -11,16 +11,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
 
-from typing import TYPE_CHECKING
-
+from qpnso.control.trajectory import Trajectory, guidance_path
 from qpnso.errors import ConfigError
 from qpnso.model.robot import Robot, load_robot
 from qpnso.settings import SettingError, check, from_dict, out_of_range
-from qpnso.control.trajectory import Trajectory, guidance_path
 
 if TYPE_CHECKING:
     from qpnso.control.offline import RunResult
@@ -153,13 +152,23 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         ControllerConfig.from_dict(f.controller)
     except SettingError as exc:
         raise exc.within("controller", str(p)) from None
-    return Scenario(name=f.scenario.name, description=f.scenario.description, robot=f.scenario.robot,
-                    center=f.start.center, rpy_deg=f.start.rpy_deg, ns0_deg=f.start.ns0_deg, branch=f.start.branch,
-                    path_size=f.path.size, path_speed=f.path.speed, controller=dict(f.controller))
+    return Scenario(
+        name=f.scenario.name,
+        description=f.scenario.description,
+        robot=f.scenario.robot,
+        center=f.start.center,
+        rpy_deg=f.start.rpy_deg,
+        ns0_deg=f.start.ns0_deg,
+        branch=f.start.branch,
+        path_size=f.path.size,
+        path_speed=f.path.speed,
+        controller=dict(f.controller),
+    )
 
 
-def run_scenario(name: str, strategy: str, seed: int = 0, duration_scale: float = 1.0,
-                 progress=None) -> dict[str, float]:
+def run_scenario(
+    name: str, strategy: str, seed: int = 0, duration_scale: float = 1.0, progress=None
+) -> dict[str, float]:
     """Simulate hands-on guidance of scenario ``name`` with ``strategy``; the run's metrics.
 
     ``duration_scale`` < 1 runs only the start of the path (for quick checks).
@@ -168,15 +177,16 @@ def run_scenario(name: str, strategy: str, seed: int = 0, duration_scale: float 
     return simulate_scenario(name, strategy, duration_scale, progress).summary
 
 
-def simulate_scenario(name: str, strategy: str | None = None, duration_scale: float = 1.0, progress=None,
-                      settings: dict | None = None) -> "RunResult":
+def simulate_scenario(
+    name: str, strategy: str | None = None, duration_scale: float = 1.0, progress=None, settings: dict | None = None
+) -> "RunResult":
     """Simulate scenario ``name``: the per-tick arrays and summary (:class:`qpnso.control.offline.RunResult`).
 
     Controller settings: the scenario file's ``[controller]``, then ``settings``
     (e.g. a user's config file and CLI flags), then ``strategy`` if given.
     """
-    from qpnso.control.controller import Controller
     from qpnso.control.config import ControllerConfig
+    from qpnso.control.controller import Controller
     from qpnso.lab.simulation import simulate
 
     sc = load_scenario(name)

@@ -3,8 +3,8 @@ compensates gravity and applies a strategy's null-space torque (docs/method.md �
 
 Joint dynamics ``A(q) q̈ + h(q, q̇) = τ + Jᵀ w_hand − τf(q̇)`` are integrated
 at ``substeps`` × the control rate by a linearly implicit Euler step (Pinocchio's
-CRBA and non-linear effects; velocity first, then position: :func:`_integrate`), the torque command held over a control tick
-(zero-order hold).  Joint friction is the robot's smooth Coulomb model [M 23].
+CRBA and non-linear effects; velocity first, then position: :func:`_integrate`), the torque command
+held over a control tick (zero-order hold).  Joint friction is the robot's smooth Coulomb model [M 23].
 Each joint gets a reflected rotor inertia (``armature``, 0.1 kg·m² by default:
 the URDF links alone give the wrist joints ~1e-4 kg·m², which no 1 kHz
 null-space damping of 10 N·m·s/rad could hold stable; real drives add it).
@@ -22,11 +22,11 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.control.controller import Controller
+from qpnso.control.offline import Recorder, RunResult
+from qpnso.control.trajectory import Trajectory
 from qpnso.errors import QpnsoError
 from qpnso.settings import check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
-from qpnso.control.offline import Recorder, RunResult
-from qpnso.control.trajectory import Trajectory
 
 
 class SimulationError(QpnsoError):
@@ -88,8 +88,9 @@ class SimulationConfig:
         return settings_from_dict(cls, values, where)
 
 
-def simulate(controller: Controller, path: Trajectory, q0: np.ndarray,
-             config: SimulationConfig | None = None, progress=None) -> RunResult:
+def simulate(
+    controller: Controller, path: Trajectory, q0: np.ndarray, config: SimulationConfig | None = None, progress=None
+) -> RunResult:
     """Simulate hands-on guidance of the tool along ``path`` from ``q0`` (rad).
 
     Returns the per-tick arrays of :data:`qpnso.control.offline.RESULT_KEYS` plus
@@ -119,8 +120,9 @@ def simulate(controller: Controller, path: Trajectory, q0: np.ndarray,
         cmd = controller.step(q, dq, tool_twist=twist, tool_pose=pose)
         ref = path.sample(t)
         wrench = cfg.hand.wrench(ref, tool)
-        recorder.add(t, q, cmd, pose, pin.SE3(ref[1], ref[0]), dq_measured=dq.copy(), hand_wrench=wrench,
-                     tool_twist=twist)
+        recorder.add(
+            t, q, cmd, pose, pin.SE3(ref[1], ref[0]), dq_measured=dq.copy(), hand_wrench=wrench, tool_twist=twist
+        )
         for _ in range(cfg.substeps):
             q, dq = _integrate(model, data, q, dq, cmd.tau, robot, tool_id, h, cfg.hand, ref)
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):

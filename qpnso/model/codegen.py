@@ -72,8 +72,9 @@ class CompileJob:
     folder ``<name>_<key>.tmp`` is the lock, and the others wait for the library to appear.
     """
 
-    def __init__(self, name: str, lib: Path | None, proc: subprocess.Popen | None = None,
-                 job: Path | None = None) -> None:
+    def __init__(
+        self, name: str, lib: Path | None, proc: subprocess.Popen | None = None, job: Path | None = None
+    ) -> None:
         self.name, self.lib, self._proc, self._job = name, lib, proc, job
 
     def result(self, timeout: float = STALE_SECONDS) -> ca.Function | None:
@@ -93,8 +94,11 @@ class CompileJob:
         if not self.lib.is_file():
             failed = Path(f"{self.lib}.log")
             if failed.is_file():
-                log.warning("qpnso: compiling %s failed; CasADi virtual machine used:\n%s", self.name,
-                            failed.read_text(errors="replace")[-2000:])
+                log.warning(
+                    "qpnso: compiling %s failed; CasADi virtual machine used:\n%s",
+                    self.name,
+                    failed.read_text(errors="replace")[-2000:],
+                )
                 failed.unlink(missing_ok=True)
             return None
         try:
@@ -123,7 +127,8 @@ def start_compile(fn: ca.Function, background: bool = False) -> CompileJob:
     except (RuntimeError, OSError) as exc:
         log.warning("qpnso: cannot generate C code for %s (%s); CasADi virtual machine used", name, exc)
         return CompileJob(name, None)
-    key = hashlib.sha256(source + compiler.encode() + ca.__version__.encode()).hexdigest()[:20]
+    version = ca.__version__  # type: ignore[attr-defined]  # (not in CasADi's stubs)
+    key = hashlib.sha256(source + compiler.encode() + version.encode()).hexdigest()[:20]
     folder = cache_root()
     lib = folder / f"{name}_{key}.so"
     if lib.is_file():
@@ -145,15 +150,20 @@ def start_compile(fn: ca.Function, background: bool = False) -> CompileJob:
         src = job / f"{name}.c"
         src.write_bytes(source)
         cmd = [compiler, "-O1", "-fPIC", "-shared", str(src), "-o", str(job / "out.so"), "-lm"]
-        proc = subprocess.Popen(["sh", "-c", _JOB_SCRIPT, "qpnso-cc", str(job), str(lib), *cmd],
-                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                start_new_session=True)
+        proc = subprocess.Popen(
+            ["sh", "-c", _JOB_SCRIPT, "qpnso-cc", str(job), str(lib), *cmd],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
     except OSError as exc:
         log.warning("qpnso: cannot start compiling %s (%s); CasADi virtual machine used", name, exc)
         shutil.rmtree(job, ignore_errors=True)
         return CompileJob(name, None)
-    announce_compile(f"{name} in the background" if background else name, len(source) / C_BYTES_PER_SECOND,
-                     "C, once per model")
+    announce_compile(
+        f"{name} in the background" if background else name, len(source) / C_BYTES_PER_SECOND, "C, once per model"
+    )
     return CompileJob(name, lib, proc)
 
 
@@ -211,10 +221,12 @@ class FastFunction:
 
     def _bind(self, fn: ca.Function) -> None:
         buf, evaluate = fn.buffer()
+        # CasADi's stubs ask for the byte size, which its SWIG binding takes from the buffer itself; NumPy's
+        # stubs give ndarray the buffer protocol on Python >= 3.12 only
         for i, a in enumerate(self._in):
-            buf.set_arg(i, memoryview(a))
+            buf.set_arg(i, memoryview(a))  # type: ignore[call-arg, arg-type]
         for i, r in enumerate(self._out):
-            buf.set_res(i, memoryview(r))
+            buf.set_res(i, memoryview(r))  # type: ignore[call-arg, arg-type]
         self._buffer, self._evaluate = buf, evaluate
 
     def _use(self, job: CompileJob) -> None:

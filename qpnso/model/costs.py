@@ -24,12 +24,12 @@ from dataclasses import asdict, dataclass, fields
 import casadi as ca
 import numpy as np
 
-from qpnso.model.codegen import FastFunction
 from qpnso.errors import InputError
+from qpnso.model.codegen import FastFunction
 from qpnso.model.robot import Robot, as_vector
+from qpnso.model.symbolic import SymbolicModel
 from qpnso.settings import check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
-from qpnso.model.symbolic import SymbolicModel
 
 TERMS = ("mass", "inertia", "friction_force", "friction_torque")
 """Names of the four cost terms of [M 18], in order."""
@@ -252,8 +252,9 @@ class CostModel:
         """Magnitude (N) of the stacked potential friction forces: √c_f [M 15]."""
         return float(np.sqrt(self.terms(q)["friction_force"]))
 
-    def directional(self, directions: object, weights: object = None, exponent: int = 1,
-                    kind: str = "mass") -> "DirectionalCost":
+    def directional(
+        self, directions: object, weights: object = None, exponent: int = 1, kind: str = "mass"
+    ) -> "DirectionalCost":
         """The multi-direction measure Σ w_i (u_iᵀΛ⁻¹u_i)^exponent [M 11], [M 12]."""
         return DirectionalCost(self, directions, weights, exponent, kind)
 
@@ -288,8 +289,7 @@ class DirectionalCost:
     ``kind`` is ``"mass"`` (Λv) or ``"inertia"`` (Λw).
     """
 
-    def __init__(self, cost: CostModel, directions: object, weights: object, exponent: int,
-                 kind: str) -> None:
+    def __init__(self, cost: CostModel, directions: object, weights: object, exponent: int, kind: str) -> None:
         if kind not in ("mass", "inertia"):
             raise InputError(f"kind must be 'mass' or 'inertia', got {kind!r}")
         if exponent not in (1, -1):

@@ -91,8 +91,11 @@ def pose_defect(R: np.ndarray, p: np.ndarray) -> int:
         for j in range(i, 3):
             if abs(r[0][i] * r[0][j] + r[1][i] * r[1][j] + r[2][i] * r[2][j] - (i == j)) > 1e-6:
                 return POSE_NOT_ROTATION
-    det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-           + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
+    det = (
+        r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+        - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+        + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
+    )
     return POSE_NOT_ROTATION if det < 0 else 0
 
 
@@ -193,8 +196,10 @@ class Robot:
         6-DOF arm has none, an arm with more joints has no single arm angle.
         """
         if self.nq != 7:
-            raise ModelError(f"qpnso needs a 7-DOF arm (one redundant degree of freedom for a 6-D tool task); "
-                             f"{self.name} has {self.nq} joints")
+            raise ModelError(
+                f"qpnso needs a 7-DOF arm (one redundant degree of freedom for a 6-D tool task); "
+                f"{self.name} has {self.nq} joints"
+            )
 
     def sample_configuration(self) -> np.ndarray:
         """A non-singular configuration inside the limits (rad): elbow and wrist bent;
@@ -220,9 +225,7 @@ class Robot:
     def jacobian(self, q: object) -> np.ndarray:
         """6×nq tool Jacobian, world-aligned at the tool point, linear rows first."""
         qv = as_vector(q, self.nq, "q")
-        return pin.computeFrameJacobian(
-            self.model, self.data, qv, self.tool_frame_id, pin.LOCAL_WORLD_ALIGNED
-        ).copy()
+        return pin.computeFrameJacobian(self.model, self.data, qv, self.tool_frame_id, pin.LOCAL_WORLD_ALIGNED).copy()
 
     def joint_placement(self, q: object, joint: int) -> pin.SE3:
         """World pose of joint ``joint``'s frame (1-based Pinocchio joint index)."""
@@ -316,8 +319,7 @@ def _panda_model() -> pin.Model:
     urdf = _panda_urdf()
     if urdf is None:
         raise RobotNotFoundError(
-            "robot 'panda' needs the optional package example-robot-data "
-            "(pip install 'qpnso[robots]')"
+            "robot 'panda' needs the optional package example-robot-data (pip install 'qpnso[robots]')"
         )
     full = _model_from_urdf(urdf)
     fingers = [full.getJointId(n) for n in full.names if "finger" in n]
@@ -338,9 +340,7 @@ def _add_tool_frame(model: pin.Model, frame_name: str, offset: pin.SE3) -> int:
         raise FrameNotFoundError(f"unknown tool frame {frame_name!r}; frames in the model: {names}")
     parent_id = model.getFrameId(frame_name)
     parent = model.frames[parent_id]
-    frame = pin.Frame(
-        TOOL_FRAME_NAME, parent.parentJoint, parent_id, parent.placement * offset, pin.FrameType.OP_FRAME
-    )
+    frame = pin.Frame(TOOL_FRAME_NAME, parent.parentJoint, parent_id, parent.placement * offset, pin.FrameType.OP_FRAME)
     return model.addFrame(frame)
 
 

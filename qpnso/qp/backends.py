@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import daqp
 import numpy as np
@@ -37,7 +38,7 @@ class _Raw:
 
 
 @njit(cache=True)
-def qp_data_finite(H, g, C, lo, hi, box_l, box_u):  # type: ignore[no-untyped-def]
+def qp_data_finite(H, g, C, lo, hi, box_l, box_u):
     """Whether a QP's data can be solved: ``H``, ``g``, ``C`` finite, no NaN in the bounds (±inf allowed)."""
     for a in (H.ravel(), g, C.ravel()):
         for x in a:
@@ -50,8 +51,15 @@ def qp_data_finite(H, g, C, lo, hi, box_l, box_u):  # type: ignore[no-untyped-de
     return True
 
 
-def finite_data_raw(H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                    box_l: np.ndarray | None, box_u: np.ndarray | None) -> _Raw | None:
+def finite_data_raw(
+    H: np.ndarray,
+    g: np.ndarray,
+    C: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    box_l: np.ndarray | None,
+    box_u: np.ndarray | None,
+) -> _Raw | None:
     """None when a QP's data can be solved (:func:`qp_data_finite`), else the failure to report: a NaN
     never reaches a back end (one once ran ProxQP for 1.5 M iterations, 9 s, measured)."""
     if qp_data_finite(H, g, C, lo, hi, _NO_VECTOR if box_l is None else box_l, _NO_VECTOR if box_u is None else box_u):
@@ -62,8 +70,16 @@ def finite_data_raw(H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray,
 _DAQP_SOLVED = (1, 2)  # DAQP's exit flags: optimal, optimal with soft constraints
 
 
-def active_set_solve(H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                     box_l: np.ndarray | None, box_u: np.ndarray | None, iter_limit: int = 1000) -> _Raw:
+def active_set_solve(
+    H: np.ndarray,
+    g: np.ndarray,
+    C: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    box_l: np.ndarray | None,
+    box_u: np.ndarray | None,
+    iter_limit: int = 1000,
+) -> _Raw:
     """``min ½vᵀHv + gᵀv`` s.t. ``lo ≤ C v ≤ hi`` (and the box) by DAQP, a dual active-set method:
     finite termination, exact to round-off on the small QPs of a tick (about 20 µs, measured), a
     semi-definite ``H`` handled by proximal-point iterations (``eps_prox=1e-6``, to ``eta_prox=1e-12``:
@@ -75,8 +91,16 @@ def active_set_solve(H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray
     else:
         upper, lower = hi, lo
     try:
-        x, _, flag, info = daqp.solve(np.ascontiguousarray(H), g, np.ascontiguousarray(C), upper, lower,
-                                      eps_prox=1e-6, eta_prox=1e-12, iter_limit=iter_limit)
+        x, _, flag, info = daqp.solve(
+            np.ascontiguousarray(H),
+            g,
+            np.ascontiguousarray(C),
+            upper,
+            lower,
+            eps_prox=1e-6,
+            eta_prox=1e-12,
+            iter_limit=iter_limit,
+        )
     except Exception as exc:  # its own failure becomes a level status
         return _Raw(None, LevelStatus.SOLVER_ERROR, None, f"daqp: {type(exc).__name__}: {exc}")
     if flag not in _DAQP_SOLVED:
@@ -91,10 +115,10 @@ class _ProxEntry:
     binding costs a call), whether its next solve must start cold (the last one failed), and how many
     more solves DAQP answers alone after a fallback (``QPSettings.active_set_hold``)."""
 
-    qp: object
-    settings: object
-    results: object
-    info: object
+    qp: Any  # proxsuite.proxqp.dense.QP and its members (ProxSuite has no type information)
+    settings: Any
+    results: Any
+    info: Any
     cold_next: bool = False
     held: int = 0
 
@@ -117,8 +141,9 @@ class _ProxSuiteBackend:
             out.PROXQP_MAX_ITER_REACHED: LevelStatus.MAX_ITER,
         }
         guess = self._px.InitialGuess
-        self._warm = guess.WARM_START_WITH_PREVIOUS_RESULT if settings.warm_start \
-            else guess.EQUALITY_CONSTRAINED_INITIAL_GUESS
+        self._warm = (
+            guess.WARM_START_WITH_PREVIOUS_RESULT if settings.warm_start else guess.EQUALITY_CONSTRAINED_INITIAL_GUESS
+        )
         self._cold = guess.EQUALITY_CONSTRAINED_INITIAL_GUESS
         self._messages: dict = {}  # status -> "proxsuite <name>" (formatted once)
         self._solved = out.PROXQP_SOLVED  # (an enum singleton: compared by identity, the cheapest test)
@@ -141,8 +166,17 @@ class _ProxSuiteBackend:
         C, lo, hi = (qp.C, qp.l, qp.u) if box else qp.rows_with_box()
         return self.solve_arrays(k, qp.H, qp.g, C, lo, hi, qp.box_l if box else None, qp.box_u if box else None)
 
-    def solve_arrays(self, k: int, H: np.ndarray, g: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                     box_l: np.ndarray | None, box_u: np.ndarray | None) -> _Raw:
+    def solve_arrays(
+        self,
+        k: int,
+        H: np.ndarray,
+        g: np.ndarray,
+        C: np.ndarray,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        box_l: np.ndarray | None,
+        box_u: np.ndarray | None,
+    ) -> _Raw:
         """``min ½vᵀHv + gᵀv`` s.t. ``lo ≤ C v ≤ hi`` (and ``box_l ≤ v ≤ box_u`` if given) on the
         persistent object of level ``k`` and this shape, warm-started.
 
@@ -205,11 +239,11 @@ class _ProxSuiteBackend:
         raw.message = f"{message}; {raw.message}"
         return raw
 
-    def _message(self, out: object) -> str:
+    def _message(self, out: Any) -> str:
         """``proxsuite <status name>``, formatted once per status."""
         message = self._messages.get(out)
         if message is None:
-            message = self._messages[out] = f"proxsuite {out.name}"  # type: ignore[attr-defined]
+            message = self._messages[out] = f"proxsuite {out.name}"
         return message
 
     @property
@@ -251,9 +285,9 @@ def _make_backend(backend: str, settings: QPSettings, stats: HQPStats):
     if not isinstance(backend, str) or backend not in qpsolvers.available_solvers:
         raise SolverError(
             f"QP back end {backend!r} is unknown or not installed; use {NATIVE_BACKEND!r} "
-            f"(native ProxSuite) or one of qpsolvers.available_solvers = {sorted(qpsolvers.available_solvers)}")
+            f"(native ProxSuite) or one of qpsolvers.available_solvers = {sorted(qpsolvers.available_solvers)}"
+        )
     return _QpsolversBackend(backend, settings)
-
 
 
 def solved_vector(raw: _Raw, shape: tuple[int, ...]) -> np.ndarray | None:

@@ -94,7 +94,6 @@ def _no_rows(n: int) -> np.ndarray:
     return np.zeros((0, n))
 
 
-
 @dataclass(slots=True)
 class Cascade:
     """What the higher levels leave to the next one.
@@ -169,7 +168,7 @@ class LevelQP:
 
     def d_of(self, v: np.ndarray) -> np.ndarray:
         """``x − x_prev = Z z`` (rad/s) of a QP solution ``v``."""
-        return self.Z @ v[:self.r]
+        return self.Z @ v[: self.r]
 
     def x_of(self, v: np.ndarray) -> np.ndarray:
         """Joint velocity (rad/s) of a QP solution ``v``."""
@@ -180,10 +179,14 @@ class LevelQP:
         unit rows (for back ends without a native box); no box: ``C, l, u`` as they are."""
         if self.box_l is None:
             return self.C, self.l, self.u
+        assert self.box_u is not None  # a box has both sides
         keep = np.isfinite(self.box_l) | np.isfinite(self.box_u)
         unit = _eye(self.H.shape[0])[keep]
-        return (np.vstack([self.C, unit]), np.concatenate([self.l, self.box_l[keep]]),
-                np.concatenate([self.u, self.box_u[keep]]))
+        return (
+            np.vstack([self.C, unit]),
+            np.concatenate([self.l, self.box_l[keep]]),
+            np.concatenate([self.u, self.box_u[keep]]),
+        )
 
 
 def _task_svd(data: _LevelData, cascade: Cascade) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -193,6 +196,7 @@ def _task_svd(data: _LevelData, cascade: Cascade) -> tuple[np.ndarray, np.ndarra
     Z, r = cascade.Z, cascade.Z.shape[1]
     if data.Aw is None or r == 0:
         return _no_rows(r), _NO_VECTOR, np.zeros((r, r)), _NO_VECTOR
+    assert data.bw is not None  # a task has its b
     At = data.Aw if cascade.full else data.Aw @ Z
     r0 = -data.bw if cascade.depth == 0 else data.Aw @ cascade.x - data.bw
     _, sigma, vt, info = _lapack.dgesdd(At, compute_uv=1, full_matrices=1)  # np.linalg.svd, less overhead
@@ -208,8 +212,31 @@ def _c(a: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def level_qp_arrays(At, sigma, vt, r0, H, g, C, l, u, n_slack, slack_scale, Z, full, x_prev, moved,  # type: ignore[no-untyped-def]
-                    lb, ub, C_inh, l_inh, u_inh, reg, rank_tol, damping):
+def level_qp_arrays(
+    At,
+    sigma,
+    vt,
+    r0,
+    H,
+    g,
+    C,
+    l,
+    u,
+    n_slack,
+    slack_scale,
+    Z,
+    full,
+    x_prev,
+    moved,
+    lb,
+    ub,
+    C_inh,
+    l_inh,
+    u_inh,
+    reg,
+    rank_tol,
+    damping,
+):
     """The arrays of :func:`build_level_qp` (absent level parts passed with zero rows; ``At`` the task
     in z with its SVD ``sigma``, ``vt``, and ``r0`` its residual at ``x_prev``, from :func:`_task_svd`).
 
@@ -262,18 +289,18 @@ def level_qp_arrays(At, sigma, vt, r0, H, g, C, l, u, n_slack, slack_scale, Z, f
     for start, Cp, lp, up in ((0, C_inh, l_inh, u_inh), (p_inh, C, l, u)):
         p = Cp.shape[0]
         if p:
-            Cv[start:start + p, :r] = Cp if full else matmul(Cp, Z)
+            Cv[start : start + p, :r] = Cp if full else matmul(Cp, Z)
             cx = matvec(Cp, x_prev) if moved else np.zeros(p)
-            lo[start:start + p] = lp - cx
-            hi[start:start + p] = up - cx
+            lo[start : start + p] = lp - cx
+            hi[start : start + p] = up - cx
     for i in range(ns):
         Cv[p_inh + i, r + i] = slack_scale
     has_box = nb == 0
     box_l, box_u = np.full(nv, -np.inf), np.full(nv, np.inf)
     if nb:
-        Cv[m - n:, :r] = Z
-        lo[m - n:] = lb - x_prev
-        hi[m - n:] = ub - x_prev
+        Cv[m - n :, :r] = Z
+        lo[m - n :] = lb - x_prev
+        hi[m - n :] = ub - x_prev
     else:  # Z the identity: the bounds as a box on z (free slacks)
         box_l[:n] = lb - x_prev
         box_u[:n] = ub - x_prev
@@ -293,15 +320,46 @@ def build_level_qp(level: Level | _LevelData, cascade: Cascade, settings: QPSett
     ns = data.n_slack
     At, sigma, vt, r0 = _task_svd(data, cascade)
     H, g, C, lo, hi, box_l, box_u, has_box, owned_z, free_z, has_task = level_qp_arrays(
-        At, sigma, vt, r0,
-        _no_rows(n) if data.H is None else _c(data.H), _NO_VECTOR if data.g is None else _c(data.g),
-        _no_rows(n) if data.C is None else _c(data.C), _NO_VECTOR if data.l is None else _c(data.l),
-        _NO_VECTOR if data.u is None else _c(data.u), ns, 1.0 / math.sqrt(2.0 * data.rho) if ns else 0.0,
-        _c(cascade.Z), cascade.full, _c(cascade.x), cascade.depth > 0, _c(cascade.lb), _c(cascade.ub),
-        _c(cascade.C), _c(cascade.l), _c(cascade.u), settings.regularization or 0.0, settings.rank_tol,
-        settings.damping_threshold)
-    return LevelQP(H, g, C, lo, hi, box_l if has_box else None, box_u if has_box else None, cascade.x, cascade.Z,
-                   owned_z, free_z if has_task else None, ns, cascade.C.shape[0], 0 if cascade.full else n)
+        At,
+        sigma,
+        vt,
+        r0,
+        _no_rows(n) if data.H is None else _c(data.H),
+        _NO_VECTOR if data.g is None else _c(data.g),
+        _no_rows(n) if data.C is None else _c(data.C),
+        _NO_VECTOR if data.l is None else _c(data.l),
+        _NO_VECTOR if data.u is None else _c(data.u),
+        ns,
+        1.0 / math.sqrt(2.0 * data.rho) if ns and data.rho is not None else 0.0,  # (ns > 0: rho is set)
+        _c(cascade.Z),
+        cascade.full,
+        _c(cascade.x),
+        cascade.depth > 0,
+        _c(cascade.lb),
+        _c(cascade.ub),
+        _c(cascade.C),
+        _c(cascade.l),
+        _c(cascade.u),
+        settings.regularization or 0.0,
+        settings.rank_tol,
+        settings.damping_threshold,
+    )
+    return LevelQP(
+        H,
+        g,
+        C,
+        lo,
+        hi,
+        box_l if has_box else None,
+        box_u if has_box else None,
+        cascade.x,
+        cascade.Z,
+        owned_z,
+        free_z if has_task else None,
+        ns,
+        cascade.C.shape[0],
+        0 if cascade.full else n,
+    )
 
 
 def _objective_gradient(data: _LevelData, x: np.ndarray) -> np.ndarray | None:
@@ -335,16 +393,19 @@ def _fix_signs(Z: np.ndarray) -> np.ndarray:
     r = Z.shape[1]
     if r == 1:  # the usual case (7-DOF arm, 6-D task): one self-motion direction
         return -Z if Z[int(np.abs(Z[:, 0]).argmax()), 0] < 0.0 else Z
-    flip = Z[np.abs(Z).argmax(axis=0), range(r)] < 0.0 if r else None
-    if r == 0 or not flip.any():
+    if r == 0:
+        return Z
+    flip = Z[np.abs(Z).argmax(axis=0), range(r)] < 0.0
+    if not flip.any():
         return Z
     Z = Z.copy()
     Z[:, flip] *= -1.0
     return Z
 
 
-def advance_cascade(level: Level | _LevelData, cascade: Cascade, qp: LevelQP, x: np.ndarray,
-                    settings: QPSettings = QPSettings()) -> Cascade:
+def advance_cascade(
+    level: Level | _LevelData, cascade: Cascade, qp: LevelQP, x: np.ndarray, settings: QPSettings = QPSettings()
+) -> Cascade:
     """The cascade after ``level`` (whose QP is ``qp``) was solved with joint velocity ``x``.
 
     Removes from the free basis the directions the level owns (module
@@ -379,6 +440,7 @@ def advance_cascade(level: Level | _LevelData, cascade: Cascade, qp: LevelQP, x:
         Z, full = _fix_signs(B if full else Z @ B), False
     C, l, u = cascade.C, cascade.l, cascade.u
     if data.C is not None:
+        assert data.l is not None and data.u is not None  # rows come with both sides
         if C.shape[0]:
             C, l, u = np.vstack([C, data.C]), np.concatenate([l, data.l]), np.concatenate([u, data.u])
         else:
@@ -402,9 +464,8 @@ def _violation(lo: np.ndarray, value: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.maximum(np.maximum(lo - value, value - hi), 0.0)
 
 
-
 @njit(cache=True)
-def level_answer(v, Z, identity, has_box, box_l, box_u, C, l, u, slack_start, n_slack, x_prev):  # type: ignore[no-untyped-def]
+def level_answer(v, Z, identity, has_box, box_l, box_u, C, l, u, slack_start, n_slack, x_prev):
     """A level QP's answer ``v = [z; σ]`` checked: ``x = x_prev + Z z`` (``identity``: ``Z`` is I), the
     worst violation of the box on z and of the hard rows (rows taken without σ; the bound rows, if
     any, are ``Z z`` against ``lb − x_prev``), and each soft row's violation (its slack)."""

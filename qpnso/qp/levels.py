@@ -103,8 +103,10 @@ def _check_interval(lo: np.ndarray, hi: np.ndarray, lo_name: str, hi_name: str) 
                 raise InputError(f"{name} contains NaN")
         bad = ~(lo <= hi) | np.isposinf(lo) | np.isneginf(hi)
         i = int(np.argmax(bad))
-        raise InputError(f"{lo_name}[{i}] = {float(lo[i])!r} > {hi_name}[{i}] = {float(hi[i])!r}, or an infinite bound "
-                         f"on the wrong side")
+        raise InputError(
+            f"{lo_name}[{i}] = {float(lo[i])!r} > {hi_name}[{i}] = {float(hi[i])!r}, or an infinite bound "
+            f"on the wrong side"
+        )
 
 
 def _validate_level(level: Level, n: int, name: str) -> _LevelData:
@@ -176,9 +178,18 @@ def _trusted_level(level: Level) -> _LevelData:
         H = 0.5 * (H + H.T)
     C = None if level.C is None else f(level.C, dtype=float)
     rho = None if C is None or level.slack_weight is None else float(level.slack_weight)
-    return _LevelData(A, b, Aw, bw, H, None if level.g is None else f(level.g, dtype=float), C,
-                      None if C is None else f(level.l, dtype=float),
-                      None if C is None else f(level.u, dtype=float), rho)
+    return _LevelData(
+        A,
+        b,
+        Aw,
+        bw,
+        H,
+        None if level.g is None else f(level.g, dtype=float),
+        C,
+        None if C is None else f(level.l, dtype=float),
+        None if C is None else f(level.u, dtype=float),
+        rho,
+    )
 
 
 def _validate_bounds(lb: object, ub: object, n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -52,7 +52,7 @@ class _Line:
 
 
 @njit(cache=True)
-def line_segment(x0, d, lb, ub):  # type: ignore[no-untyped-def]
+def line_segment(x0, d, lb, ub):
     """``[t_lo, t_hi]`` where ``lb ≤ x0 + t·d ≤ ub`` (empty: ``t_lo > t_hi``); ``d`` made to have its
     largest-magnitude entry positive first.  A still joint (|d_i| ≤ 1e-12: the elbow of an S-R-S
     arm) must be within its bounds at ``x0``."""
@@ -76,7 +76,7 @@ LINE_CUT = 2  # the bounds miss the line of exact solutions (a bound binds the t
 
 
 @njit(cache=True)
-def task_line(A, b, lb, ub, rank_tol, damping):  # type: ignore[no-untyped-def]
+def task_line(A, b, lb, ub, rank_tol, damping):
     """``(code, x0, d, t_lo, t_hi)``: the exact solutions ``x0 + t·d``, ``t ∈ [t_lo, t_hi]``, of a
     plain (n−1)×n task ``A x = b`` within ``lb ≤ x ≤ ub`` (module docstring, *line fast path*);
     ``code`` :data:`LINE_SINGULAR` when ``σ_min`` may be below ``damping`` (``1/‖R⁻¹‖_F ≤ σ_min`` is
@@ -89,7 +89,7 @@ def task_line(A, b, lb, ub, rank_tol, damping):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def least_norm_point(x0, d, t_lo, t_hi):  # type: ignore[no-untyped-def]
+def least_norm_point(x0, d, t_lo, t_hi):
     """The least-norm point of the segment ``x0 + t·d``, ``t ∈ [t_lo, t_hi]`` (``x0 ⊥ d``): level 1's answer."""
     return x0 + min(max(0.0, t_lo), t_hi) * d
 
@@ -98,15 +98,14 @@ def _task_line(data: _LevelData, lb: np.ndarray, ub: np.ndarray, settings: QPSet
     """Level 1 in closed form (:func:`task_line`), or None when it does not apply: not a plain task
     of n − 1 rows, a singular value that may be below the damping threshold, or bounds that miss the line."""
     Aw = data.Aw
-    if Aw is None or data.H is not None or data.g is not None or data.C is not None \
-            or Aw.shape[0] != Aw.shape[1] - 1:
+    if Aw is None or data.H is not None or data.g is not None or data.C is not None or Aw.shape[0] != Aw.shape[1] - 1:
         return None
     code, x0, d, t_lo, t_hi = task_line(Aw, data.bw, lb, ub, settings.rank_tol, settings.damping_threshold)
     return _Line(x0, d, t_lo, t_hi) if code == LINE_OK else None
 
 
 @njit(cache=True)
-def line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale, reg, rank_tol, damping):  # type: ignore[no-untyped-def]
+def line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale, reg, rank_tol, damping):
     """The arrays of :func:`_line_level_qp` (absent level parts passed with zero rows).
 
     Cost ``‖A x − b‖² + ½xᵀHx + gᵀx`` at ``x = x0 + t·d``: curvature and slope in ``t``
@@ -156,25 +155,35 @@ def _line_level_qp(data: _LevelData, line: _Line, settings: QPSettings) -> Level
     n = d.shape[0]
     ns = data.n_slack
     H, g, C, lo, hi, box_l, box_u, owned = line_qp_arrays(
-        d, line.x0, line.t_lo, line.t_hi,
-        _no_rows(n) if data.Aw is None else data.Aw, _NO_VECTOR if data.bw is None else data.bw,
-        _no_rows(n) if data.H is None else data.H, _NO_VECTOR if data.g is None else data.g,
-        _no_rows(n) if data.C is None else data.C, _NO_VECTOR if data.l is None else data.l,
-        _NO_VECTOR if data.u is None else data.u, ns, 1.0 / math.sqrt(2.0 * data.rho) if ns else 0.0,
-        settings.regularization or 0.0, settings.rank_tol, settings.damping_threshold)
-    return LevelQP(H, g, C, lo, hi, box_l, box_u, line.x0, d[:, None], _OWNED_1 if owned else _OWNED_0, None,
-                   ns, 0, 0)
-
+        d,
+        line.x0,
+        line.t_lo,
+        line.t_hi,
+        _no_rows(n) if data.Aw is None else data.Aw,
+        _NO_VECTOR if data.bw is None else data.bw,
+        _no_rows(n) if data.H is None else data.H,
+        _NO_VECTOR if data.g is None else data.g,
+        _no_rows(n) if data.C is None else data.C,
+        _NO_VECTOR if data.l is None else data.l,
+        _NO_VECTOR if data.u is None else data.u,
+        ns,
+        1.0 / math.sqrt(2.0 * data.rho) if ns and data.rho is not None else 0.0,  # (ns > 0: rho is set)
+        settings.regularization or 0.0,
+        settings.rank_tol,
+        settings.damping_threshold,
+    )
+    return LevelQP(H, g, C, lo, hi, box_l, box_u, line.x0, d[:, None], _OWNED_1 if owned else _OWNED_0, None, ns, 0, 0)
 
 
 LINE_ANSWER_OK, LINE_ANSWER_NOT_FINITE, LINE_ANSWER_VIOLATED = 0, 1, 2
 
 
 @njit(cache=True)
-def checked_line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack, tol):  # type: ignore[no-untyped-def]
-    """``(code, x, worst, slack)`` of :func:`level_answer` on the line (``Z = d``, box on ``t``), judged: :data:`LINE_ANSWER_NOT_FINITE` when ``t``
-    (all that ``x`` depends on) is not finite, :data:`LINE_ANSWER_VIOLATED` when the box or a hard row is
-    violated by more than ``tol``, else :data:`LINE_ANSWER_OK`."""
+def checked_line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack, tol):
+    """``(code, x, worst, slack)`` of :func:`level_answer` on the line (``Z = d``, box on ``t``), judged:
+    :data:`LINE_ANSWER_NOT_FINITE` when ``t`` (all that ``x`` depends on) is not finite,
+    :data:`LINE_ANSWER_VIOLATED` when the box or a hard row is violated by more than ``tol``, else
+    :data:`LINE_ANSWER_OK`."""
     if not math.isfinite(v[0]):
         return LINE_ANSWER_NOT_FINITE, x0.copy(), math.inf, np.zeros(n_slack)
     x, worst, slack = level_answer(v, d.reshape(d.shape[0], 1), False, True, box_l, box_u, C, l, u, 0, n_slack, x0)

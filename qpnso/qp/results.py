@@ -89,7 +89,6 @@ class HQPStats:
     active_set_fallbacks: int = 0
 
 
-
 def level_failure(k: int, n_levels: int, result: LevelResult) -> str:
     """How :attr:`HQPResult.status` names the first failed level ``k`` (0-based) of ``n_levels``."""
     return f"level {k + 1} of {n_levels} {result.status}: {result.message}"

@@ -56,8 +56,18 @@ class QPSettings:
         check(self)
         if self.regularization is not None and self.regularization < 0:
             raise out_of_range(self, "regularization", "must be >= 0 or None")
-        for name in ("eps_abs", "eps_rel", "eps_primal_inf", "eps_dual_inf", "mu_in",
-                     "rank_tol", "damping_threshold", "gradient_tol", "feasibility_tol", "active_tol"):
+        for name in (
+            "eps_abs",
+            "eps_rel",
+            "eps_primal_inf",
+            "eps_dual_inf",
+            "mu_in",
+            "rank_tol",
+            "damping_threshold",
+            "gradient_tol",
+            "feasibility_tol",
+            "active_tol",
+        ):
             if getattr(self, name) < 0:
                 raise out_of_range(self, name, "must be >= 0")
         for name in ("max_iter", "max_iter_in", "max_iter_active_set"):

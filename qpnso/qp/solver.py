@@ -74,8 +74,14 @@ class HierarchicalQP:
         self.stats = HQPStats()
         self._backend = _make_backend(backend, self.settings, self.stats)
 
-    def solve(self, levels: Sequence[Level], lb: np.ndarray | None = None,
-              ub: np.ndarray | None = None, check: bool = True, time_budget: float | None = None) -> HQPResult:
+    def solve(
+        self,
+        levels: Sequence[Level],
+        lb: np.ndarray | None = None,
+        ub: np.ndarray | None = None,
+        check: bool = True,
+        time_budget: float | None = None,
+    ) -> HQPResult:
         """Solve the cascade under the hard bounds ``lb ≤ x ≤ ub`` (rad/s, ∓inf allowed).
 
         Raises :class:`InputError` on bad input (before solving anything);
@@ -93,8 +99,11 @@ class HierarchicalQP:
         in iterations (:class:`QPSettings`); the line fast path's two levels are not cut.
         """
         t0 = time.perf_counter()
-        if not isinstance(levels, (list, tuple)) and (isinstance(levels, Level) or not isinstance(levels, Sequence)) \
-                or len(levels) == 0:
+        if (
+            not isinstance(levels, (list, tuple))
+            and (isinstance(levels, Level) or not isinstance(levels, Sequence))
+            or len(levels) == 0
+        ):
             raise InputError("levels must be a non-empty sequence of Level")
         if time_budget is not None and not (isinstance(time_budget, (int, float)) and time_budget > 0):
             raise InputError(f"time_budget must be a positive number of seconds or None, got {time_budget!r}")
@@ -105,13 +114,13 @@ class HierarchicalQP:
             data = [_trusted_level(level) for level in levels]
             lo = np.full(self.n, -np.inf) if lb is None else np.asarray(lb, dtype=float)
             hi = np.full(self.n, np.inf) if ub is None else np.asarray(ub, dtype=float)
-        line = _task_line(data[0], lo, hi, self.settings) \
-            if self.settings.line_fast_path and len(data) <= 2 else None
+        line = _task_line(data[0], lo, hi, self.settings) if self.settings.line_fast_path and len(data) <= 2 else None
         results = self._solve_cascade(data, lo, hi, time_budget) if line is None else self._solve_on_line(data, line)
         return self._finish(results, len(data), t0)
 
-    def _solve_cascade(self, data: list[_LevelData], lo: np.ndarray, hi: np.ndarray,
-                       time_budget: float | None = None) -> list[LevelResult]:
+    def _solve_cascade(
+        self, data: list[_LevelData], lo: np.ndarray, hi: np.ndarray, time_budget: float | None = None
+    ) -> list[LevelResult]:
         """Level after level in the null-space basis; stops at the first failed level, or before a level
         that would overrun ``time_budget`` (s of CPU time, :meth:`solve`).  The last solved level's answer is
         then made unique: the least-norm point of its optimal set (:meth:`_least_norm`), never whatever a
@@ -122,8 +131,12 @@ class HierarchicalQP:
         start = level_start = time.thread_time() if time_budget is not None else 0.0
         for k, level in enumerate(data):
             if k and time_budget is not None and _out_of_time(start, level_start, time_budget):
-                results.append(LevelResult(LevelStatus.TIME_BUDGET, message=f"the cascade's time budget of "
-                                           f"{time_budget * 1e3:.3g} ms would be spent by this level"))
+                results.append(
+                    LevelResult(
+                        LevelStatus.TIME_BUDGET,
+                        message=f"the cascade's time budget of {time_budget * 1e3:.3g} ms would be spent by this level",
+                    )
+                )
                 break
             level_start = time.thread_time() if time_budget is not None else 0.0
             qp = build_level_qp(level, cascade, self.settings)
@@ -131,6 +144,7 @@ class HierarchicalQP:
             results.append(result)
             if not result.ok:
                 break
+            assert result.x is not None  # a solved level has its x
             if k == len(data) - 1 and strictly_convex(qp, self.settings.rank_tol):
                 return results  # its answer is unique already: no optimal set left to search
             cascade = solved = advance_cascade(level, cascade, qp, result.x, self.settings)
@@ -148,7 +162,7 @@ class HierarchicalQP:
         qp = build_level_qp(data, cascade, self.settings)
         raw = active_set_solve(qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, self.settings.max_iter_active_set)
         result = self._check(data, qp, raw)
-        return result.x if result.ok else cascade.x
+        return result.x if result.ok and result.x is not None else cascade.x  # (solved: x is set)
 
     def reset(self) -> None:
         """Forget every warm start, persistent solver object and counter: from here the solver
@@ -163,47 +177,89 @@ class HierarchicalQP:
         takes a path must not pay for it (loading two kernels took 30–60 ms, measured)."""
         n = self.n
         eye = np.eye(n)
-        self.solve([Level(A=eye[:2], b=np.ones(2)),
-                    Level(A=eye[2:3], b=np.ones(1), H=eye, C=eye[:1], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0),
-                    Level(g=np.ones(n), C=eye[1:2], l=-np.ones(1), u=np.ones(1))], -np.ones(n), np.ones(n))
-        self.solve([Level(A=eye[:n - 1], b=np.zeros(n - 1)),  # the line fast path's kernels
-                    Level(H=eye, g=np.ones(n), C=eye[n - 1:], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0)],
-                   -np.ones(n), np.ones(n))
+        self.solve(
+            [
+                Level(A=eye[:2], b=np.ones(2)),
+                Level(A=eye[2:3], b=np.ones(1), H=eye, C=eye[:1], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0),
+                Level(g=np.ones(n), C=eye[1:2], l=-np.ones(1), u=np.ones(1)),
+            ],
+            -np.ones(n),
+            np.ones(n),
+        )
+        self.solve(
+            [
+                Level(A=eye[: n - 1], b=np.zeros(n - 1)),  # the line fast path's kernels
+                Level(H=eye, g=np.ones(n), C=eye[n - 1 :], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0),
+            ],
+            -np.ones(n),
+            np.ones(n),
+        )
         self.reset()
 
     def _solve_on_line(self, data: list[_LevelData], line: _Line) -> list[LevelResult]:
         """Line fast path (:mod:`qpnso.qp.line`): level 1 in closed form, level 2 (if any) on the line."""
         t1 = time.perf_counter()
         x1 = least_norm_point(line.x0, line.direction, line.t_lo, line.t_hi)
-        first = LevelResult(LevelStatus.SOLVED, x=x1, residual=_residual(data[0], x1), iterations=0,
-                            message="closed form: the task's exact solutions meet the bounds on a line")
+        first = LevelResult(
+            LevelStatus.SOLVED,
+            x=x1,
+            residual=_residual(data[0], x1),
+            iterations=0,
+            message="closed form: the task's exact solutions meet the bounds on a line",
+        )
         t2 = time.perf_counter()
         first.solve_time_s = t2 - t1
         if len(data) == 1:
             return [first]
         level = data[1]
         qp = _line_level_qp(level, line, self.settings)
-        second = self.solve_line_level(qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, line.x0, line.direction,
-                                       qp.n_slack, qp)
+        assert qp.box_l is not None and qp.box_u is not None  # the line's box on t
+        second = self.solve_line_level(
+            qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, line.x0, line.direction, qp.n_slack, qp
+        )
         if second.ok:
+            assert second.x is not None  # a solved level has its x
             second.residual = _residual(level, second.x)
         second.solve_time_s = time.perf_counter() - t2
         return [first, second]
 
-    def solve_line_level(self, H: np.ndarray, g: np.ndarray, C: np.ndarray, l: np.ndarray, u: np.ndarray,
-                         box_l: np.ndarray, box_u: np.ndarray, x0: np.ndarray, direction: np.ndarray,
-                         n_slack: int, qp: LevelQP | None = None) -> LevelResult:
+    def solve_line_level(
+        self,
+        H: np.ndarray,
+        g: np.ndarray,
+        C: np.ndarray,
+        l: np.ndarray,
+        u: np.ndarray,
+        box_l: np.ndarray,
+        box_u: np.ndarray,
+        x0: np.ndarray,
+        direction: np.ndarray,
+        n_slack: int,
+        qp: LevelQP | None = None,
+    ) -> LevelResult:
         """Level 2 of the line fast path from the arrays of :func:`line_qp_arrays` (``v = [t; σ]``,
         ``x = x0 + t·direction``, rad/s): :meth:`line_level_raw`, then :meth:`line_level_result`
         (``residual`` is left to the caller).  The controller's compiled tick (:mod:`qpnso.control.tick`)
         calls the two parts itself and counts its ticks with :meth:`count_solve`."""
-        raw = finite_data_raw(H, g, C, l, u, box_l, box_u) or \
-            self.line_level_raw(H, g, C, l, u, box_l, box_u, x0, direction, n_slack, qp)
+        raw = finite_data_raw(H, g, C, l, u, box_l, box_u) or self.line_level_raw(
+            H, g, C, l, u, box_l, box_u, x0, direction, n_slack, qp
+        )
         return self.line_level_result(raw, direction, x0, box_l, box_u, C, l, u, n_slack)
 
-    def line_level_raw(self, H: np.ndarray, g: np.ndarray, C: np.ndarray, l: np.ndarray, u: np.ndarray,
-                       box_l: np.ndarray, box_u: np.ndarray, x0: np.ndarray, direction: np.ndarray,
-                       n_slack: int, qp: LevelQP | None = None) -> _Raw:
+    def line_level_raw(
+        self,
+        H: np.ndarray,
+        g: np.ndarray,
+        C: np.ndarray,
+        l: np.ndarray,
+        u: np.ndarray,
+        box_l: np.ndarray,
+        box_u: np.ndarray,
+        x0: np.ndarray,
+        direction: np.ndarray,
+        n_slack: int,
+        qp: LevelQP | None = None,
+    ) -> _Raw:
         """The back end's answer to the line's level 2, on its persistent level-2 object, unchecked."""
         if isinstance(self._backend, _ProxSuiteBackend) and self.settings.box_constraints:
             return self._backend.solve_arrays(1, H, g, C, l, u, box_l, box_u)
@@ -211,8 +267,18 @@ class HierarchicalQP:
             qp = LevelQP(H, g, C, l, u, box_l, box_u, x0, direction[:, None], _OWNED_0, None, n_slack, 0, 0)
         return self._backend.solve(1, qp)
 
-    def line_level_result(self, raw: _Raw, direction: np.ndarray, x0: np.ndarray, box_l: np.ndarray,
-                          box_u: np.ndarray, C: np.ndarray, l: np.ndarray, u: np.ndarray, n_slack: int) -> LevelResult:
+    def line_level_result(
+        self,
+        raw: _Raw,
+        direction: np.ndarray,
+        x0: np.ndarray,
+        box_l: np.ndarray,
+        box_u: np.ndarray,
+        C: np.ndarray,
+        l: np.ndarray,
+        u: np.ndarray,
+        n_slack: int,
+    ) -> LevelResult:
         """A raw line answer judged (:func:`checked_line_answer`: box on ``t`` and hard rows within
         ``feasibility_tol``) with the soft rows' slack."""
         if raw.status is not LevelStatus.SOLVED:
@@ -220,16 +286,24 @@ class HierarchicalQP:
         code = LINE_ANSWER_NOT_FINITE
         v = solved_vector(raw, box_l.shape)
         if v is not None:
-            code, x, worst, slack = checked_line_answer(v, direction, x0, box_l, box_u, C, l, u, n_slack,
-                                                        self.settings.feasibility_tol)
+            code, x, worst, slack = checked_line_answer(
+                v, direction, x0, box_l, box_u, C, l, u, n_slack, self.settings.feasibility_tol
+            )
         if code == LINE_ANSWER_NOT_FINITE:
-            return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
-                               message=f"{raw.message}: non-finite or mis-shaped solution")
+            return LevelResult(
+                LevelStatus.INACCURATE,
+                iterations=raw.iterations,
+                message=f"{raw.message}: non-finite or mis-shaped solution",
+            )
         if code == LINE_ANSWER_VIOLATED:
-            return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
-                               message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
-        return LevelResult(LevelStatus.SOLVED, x=x, slack=slack if n_slack else None, iterations=raw.iterations,
-                           message=raw.message)
+            return LevelResult(
+                LevelStatus.INACCURATE,
+                iterations=raw.iterations,
+                message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}",
+            )
+        return LevelResult(
+            LevelStatus.SOLVED, x=x, slack=slack if n_slack else None, iterations=raw.iterations, message=raw.message
+        )
 
     def count_solve(self, ok: bool) -> None:
         """Count one cascade in ``stats`` (:meth:`solve` does; so does a caller that solves the
@@ -256,8 +330,14 @@ class HierarchicalQP:
         results += [LevelResult(LevelStatus.SKIPPED) for _ in range(len(results), n_levels)]
         self.count_solve(failed is None)
         status = "solved" if failed is None else level_failure(failed, n_levels, results[failed])
-        return HQPResult(x=None if x_good is None else x_good.copy(), ok=failed is None, status=status,
-                         failed_level=failed, levels=results, solve_time_s=time.perf_counter() - t0)
+        return HQPResult(
+            x=None if x_good is None else x_good.copy(),
+            ok=failed is None,
+            status=status,
+            failed_level=failed,
+            levels=results,
+            solve_time_s=time.perf_counter() - t0,
+        )
 
     def _check(self, level: _LevelData, qp: LevelQP, raw: _Raw) -> LevelResult:
         """Verify a level's answer: finite, and every bound and hard row (this level's and
@@ -266,19 +346,39 @@ class HierarchicalQP:
             return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
         v = raw.v
         if v is None or v.shape != qp.g.shape or not math.isfinite(v.sum()):
-            return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations,
-                               message=f"{raw.message}: non-finite or mis-shaped solution")
+            return LevelResult(
+                LevelStatus.INACCURATE,
+                iterations=raw.iterations,
+                message=f"{raw.message}: non-finite or mis-shaped solution",
+            )
         box = qp.box_l is not None
-        x, worst, slack = level_answer(_c(v), _c(qp.Z), qp.r == qp.Z.shape[0], box,
-                                       qp.box_l if box else _NO_VECTOR, qp.box_u if box else _NO_VECTOR,
-                                       qp.C, qp.l, qp.u, qp.slack_start, qp.n_slack, _c(qp.x_prev))
+        x, worst, slack = level_answer(
+            _c(v),
+            _c(qp.Z),
+            qp.r == qp.Z.shape[0],
+            box,
+            qp.box_l if box else _NO_VECTOR,
+            qp.box_u if box else _NO_VECTOR,
+            qp.C,
+            qp.l,
+            qp.u,
+            qp.slack_start,
+            qp.n_slack,
+            _c(qp.x_prev),
+        )
         if not worst <= self.settings.feasibility_tol:
             status = LevelStatus.INFEASIBLE if qp.r == 0 else LevelStatus.INACCURATE
-            return LevelResult(status, iterations=raw.iterations,
-                               message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}")
-        return LevelResult(LevelStatus.SOLVED, x=x, residual=_residual(level, x), slack=slack if qp.n_slack else None,
-                           iterations=raw.iterations, message=raw.message)
-
+            return LevelResult(
+                status, iterations=raw.iterations, message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}"
+            )
+        return LevelResult(
+            LevelStatus.SOLVED,
+            x=x,
+            residual=_residual(level, x),
+            slack=slack if qp.n_slack else None,
+            iterations=raw.iterations,
+            message=raw.message,
+        )
 
 
 def _out_of_time(start: float, level_start: float, budget: float) -> bool:
@@ -286,7 +386,6 @@ def _out_of_time(start: float, level_start: float, budget: float) -> bool:
     last level's own time (since ``level_start``): the levels of one cascade cost about the same."""
     now = time.thread_time()
     return now - start + (now - level_start) > budget
-
 
 
 def _residual(level: _LevelData, x: np.ndarray) -> float | None:

@@ -71,7 +71,23 @@ from qpnso.lab.fuzz.runner import realtime_gc, run_fuzz
 from qpnso.lab.fuzz.starts import arm_angle_undefined
 
 __all__ = [
-    "CHECKS", "CHECK_KEYS", "PROBE_KINDS", "START_KINDS", "Example", "FuzzConfig", "FuzzReport", "HoldMonitor",
-    "Probe", "Recovery", "SolverClock", "TickChecker", "Where", "arm_angle_undefined", "make_probe", "realtime_gc",
-    "run_fuzz", "send_probe", "update_recovery",
+    "CHECKS",
+    "CHECK_KEYS",
+    "PROBE_KINDS",
+    "START_KINDS",
+    "Example",
+    "FuzzConfig",
+    "FuzzReport",
+    "HoldMonitor",
+    "Probe",
+    "Recovery",
+    "SolverClock",
+    "TickChecker",
+    "Where",
+    "arm_angle_undefined",
+    "make_probe",
+    "realtime_gc",
+    "run_fuzz",
+    "send_probe",
+    "update_recovery",
 ]

@@ -61,8 +61,16 @@ class TickChecker:
         self.correction_speed = ControllerConfig().pose_correction_speed  # m/s; the built controller's, once built
 
     # ------------------------------------------------------------- command
-    def command(self, cmd: Command, q: np.ndarray, where: Where, inputs: dict, timed: bool = True,
-                cpu_time: float = math.inf, solver_cpu_time: float = math.inf) -> bool:
+    def command(
+        self,
+        cmd: Command,
+        q: np.ndarray,
+        where: Where,
+        inputs: dict,
+        timed: bool = True,
+        cpu_time: float = math.inf,
+        solver_cpu_time: float = math.inf,
+    ) -> bool:
         """Check one command given at ``q`` (rad): finite, velocity, joint limits, torque, solver time
         (``cpu_time``, s: the CPU time of the whole ``step`` call; ``solver_cpu_time`` the solver's, from
         :class:`SolverClock`: a tick over ``solve_time_max`` in wall time but not in the solver's CPU time
@@ -78,17 +86,30 @@ class TickChecker:
                 rep.tick_cpu_times.append(cpu_time)
         if cmd.solve_time > cfg.solve_time_max:
             key = "solve_time" if solver_cpu_time > cfg.solve_time_max else "preempted"
-            rep.record(key, cmd.solve_time, where, inputs,
-                       f"status {cmd.status}, tick_time {cmd.tick_time:.4g} s, tick CPU time {cpu_time:.4g} s, "
-                       f"solver CPU time {solver_cpu_time:.4g} s")
+            rep.record(
+                key,
+                cmd.solve_time,
+                where,
+                inputs,
+                f"status {cmd.status}, tick_time {cmd.tick_time:.4g} s, tick CPU time {cpu_time:.4g} s, "
+                f"solver CPU time {solver_cpu_time:.4g} s",
+            )
         shapes = dq.shape == q_des.shape == tau.shape == q.shape
         bad = 0 if shapes else q.size
         if shapes:
-            bad = int(np.count_nonzero(~np.isfinite(dq)) + np.count_nonzero(~np.isfinite(q_des))
-                      + np.count_nonzero(~np.isfinite(tau)))
+            bad = int(
+                np.count_nonzero(~np.isfinite(dq))
+                + np.count_nonzero(~np.isfinite(q_des))
+                + np.count_nonzero(~np.isfinite(tau))
+            )
         if bad:
-            rep.record("non_finite", bad, where, inputs,
-                       f"dq {dq.tolist()}, q_des {q_des.tolist()}, tau {tau.tolist()}, status {cmd.status}")
+            rep.record(
+                "non_finite",
+                bad,
+                where,
+                inputs,
+                f"dq {dq.tolist()}, q_des {q_des.tolist()}, tau {tau.tolist()}, status {cmd.status}",
+            )
             return False
         self._magnitude("velocity", "dq", "rad/s", dq, self.dq_max, self.config.joint_tol, cmd, where, inputs)
         if not self._limits(q, q + self.dt * dq, "q + dt·dq", cmd, where, inputs):
@@ -96,18 +117,32 @@ class TickChecker:
         self._magnitude("torque", "tau", "N·m", tau, self.tau_limit, self.config.torque_tol, cmd, where, inputs)
         return True
 
-    def _magnitude(self, key: str, name: str, unit: str, values: np.ndarray, limit: np.ndarray, tol: float,
-                   cmd: Command, where: Where, inputs: dict) -> None:
+    def _magnitude(
+        self,
+        key: str,
+        name: str,
+        unit: str,
+        values: np.ndarray,
+        limit: np.ndarray,
+        tol: float,
+        cmd: Command,
+        where: Where,
+        inputs: dict,
+    ) -> None:
         """``abs(values) ≤ limit + tol`` per joint; the worst excess recorded under ``key`` (× the limit)."""
         over = np.abs(values) - limit
         j = int(np.argmax(over))
         if over[j] > tol:
-            self.report.record(key, abs(values[j]) / limit[j], where, inputs,
-                               f"joint {j + 1}: {name} {values[j]:.9g} {unit}, limit {limit[j]:.9g} (over by "
-                               f"{over[j]:.3g}); status {cmd.status}")
+            self.report.record(
+                key,
+                abs(values[j]) / limit[j],
+                where,
+                inputs,
+                f"joint {j + 1}: {name} {values[j]:.9g} {unit}, limit {limit[j]:.9g} (over by "
+                f"{over[j]:.3g}); status {cmd.status}",
+            )
 
-    def _limits(self, q: np.ndarray, q_next: np.ndarray, what: str, cmd: Command, where: Where,
-                inputs: dict) -> bool:
+    def _limits(self, q: np.ndarray, q_next: np.ndarray, what: str, cmd: Command, where: Where, inputs: dict) -> bool:
         """A joint crosses a limit (inside at ``q``) or moves further out (outside at ``q``)."""
         low = np.minimum(q, self.q_min) - q_next
         high = q_next - np.maximum(q, self.q_max)
@@ -116,9 +151,14 @@ class TickChecker:
         if over[j] <= self.config.joint_tol:
             return False
         side = "below q_min" if low[j] >= high[j] else "above q_max"
-        self.report.record("limit_crossing", over[j], where, inputs,
-                           f"joint {j + 1}: {what} {q_next[j]:.9g} {side} by {over[j]:.3g} rad from q {q[j]:.9g} "
-                           f"(limits [{self.q_min[j]:.6g}, {self.q_max[j]:.6g}]); status {cmd.status}")
+        self.report.record(
+            "limit_crossing",
+            over[j],
+            where,
+            inputs,
+            f"joint {j + 1}: {what} {q_next[j]:.9g} {side} by {over[j]:.3g} rad from q {q[j]:.9g} "
+            f"(limits [{self.q_min[j]:.6g}, {self.q_max[j]:.6g}]); status {cmd.status}",
+        )
         return True
 
     # ----------------------------------------------------------------- ROM
@@ -129,11 +169,15 @@ class TickChecker:
         out = max(lo - cmd.arm_angle, cmd.arm_angle - hi, 0.0)
         if not math.isfinite(out):
             return 0.0
-        if previous is not None and out > 0.0 and out > previous + self.config.rom_tol \
-                and not cmd.status & _EXCUSE_ROM:
-            self.report.record("rom_excursion", out, where, inputs,
-                               f"arm angle {cmd.arm_angle:.6g} rad outside ROM_t [{lo:.6g}, {hi:.6g}] by {out:.3g} "
-                               f"(previous tick {previous:.3g}); status {cmd.status}")
+        if previous is not None and out > 0.0 and out > previous + self.config.rom_tol and not cmd.status & _EXCUSE_ROM:
+            self.report.record(
+                "rom_excursion",
+                out,
+                where,
+                inputs,
+                f"arm angle {cmd.arm_angle:.6g} rad outside ROM_t [{lo:.6g}, {hi:.6g}] by {out:.3g} "
+                f"(previous tick {previous:.3g}); status {cmd.status}",
+            )
         return out
 
     # ---------------------------------------------------------------- tool
@@ -148,8 +192,9 @@ class TickChecker:
         r, p = self.tool_pose(q)
         return float(np.linalg.norm(position - p)), float(np.linalg.norm(pin.log3(rotation @ r.T)))
 
-    def drift(self, monitor: HoldMonitor, error: tuple[float, float], previous: Status | None, where: Where,
-              inputs: dict) -> None:
+    def drift(
+        self, monitor: HoldMonitor, error: tuple[float, float], previous: Status | None, where: Where, inputs: dict
+    ) -> None:
         """Held-tool drift at the start of a tick (``error`` from :meth:`tool_error`, ``previous`` the status
         of the command that moved the tool here)."""
         if not monitor.active:
@@ -165,9 +210,14 @@ class TickChecker:
             return
         self.report.drift_checked += 1
         if not within:
-            self.report.record("drift", max(error), where, inputs,
-                               f"tool {error[0]:.3g} m / {error[1]:.3g} rad from the held pose after settling; "
-                               f"previous status {previous}")
+            self.report.record(
+                "drift",
+                max(error),
+                where,
+                inputs,
+                f"tool {error[0]:.3g} m / {error[1]:.3g} rad from the held pose after settling; "
+                f"previous status {previous}",
+            )
 
     def reachable(self, q: np.ndarray, rotation: np.ndarray, position: np.ndarray, iterations: int = 300) -> bool:
         """Whether damped least squares from ``q`` within the joint limits reaches the pose (1e-5 m, 1e-4 rad):
@@ -202,9 +252,16 @@ def closing(pending: Recovery, error_m: float, speed: float, dt: float) -> bool:
     return math.isfinite(pending.last_error) and error_m <= pending.last_error - 0.5 * speed * dt
 
 
-def update_recovery(pending: Recovery | None, tick: int, cmd: Command | None, error_m: float,
-                    checker: TickChecker, q: np.ndarray, reference: tuple[np.ndarray, np.ndarray],
-                    inputs: dict) -> Recovery | None:
+def update_recovery(
+    pending: Recovery | None,
+    tick: int,
+    cmd: Command | None,
+    error_m: float,
+    checker: TickChecker,
+    q: np.ndarray,
+    reference: tuple[np.ndarray, np.ndarray],
+    inputs: dict,
+) -> Recovery | None:
     """Advance a pending recovery by one valid tick; returns it while still pending."""
     if pending is None:
         return None
@@ -226,10 +283,15 @@ def update_recovery(pending: Recovery | None, tick: int, cmd: Command | None, er
             rep.recovery_elbow_undefined += 1
             return None
         pending.overdue = True
-        rep.record("recovery", elapsed, replace(pending.where, tick=tick), inputs,
-                   f"{pending.kind}: not recovered after {elapsed} ticks; tool error {error_m:.3g} m, "
-                   f"status {None if cmd is None else cmd.status}, cmd.tool_error "
-                   f"{None if cmd is None else cmd.tool_error}")
+        rep.record(
+            "recovery",
+            elapsed,
+            replace(pending.where, tick=tick),
+            inputs,
+            f"{pending.kind}: not recovered after {elapsed} ticks; tool error {error_m:.3g} m, "
+            f"status {None if cmd is None else cmd.status}, cmd.tool_error "
+            f"{None if cmd is None else cmd.tool_error}",
+        )
     return pending
 
 
@@ -246,7 +308,11 @@ def end_recovery(pending: Recovery | None, tick: int, report: FuzzReport) -> Non
 def _note_recovery(report: FuzzReport, pending: Recovery, elapsed: int, what: str) -> None:
     """Update the worst recovery example with the eventual time of an overdue one."""
     ex = report.worst.get("recovery")
-    if ex is not None and ex.where.episode == pending.where.episode and ex.where.strategy == pending.where.strategy \
-            and elapsed >= ex.value:
+    if (
+        ex is not None
+        and ex.where.episode == pending.where.episode
+        and ex.where.strategy == pending.where.strategy
+        and elapsed >= ex.value
+    ):
         ex.value = float(elapsed)
         ex.detail = f"{pending.kind}: {what}; " + ex.detail.split("; ", 1)[-1]

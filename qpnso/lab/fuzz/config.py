@@ -18,10 +18,26 @@ Observer = Callable[["Where", dict, "Command | None", "tuple[float, float]"], No
 
 START_KINDS = ("uniform", "near_limit", "elbow_straight", "wrist_over_shoulder")
 PROBE_KINDS = (
-    "q_nan", "q_inf", "q_complex", "q_shape", "q_type", "q_degrees", "q_out_little", "q_out_far",
-    "dq_nan", "dq_inf", "dq_complex", "dq_shape",
-    "twist_nan", "twist_inf", "twist_complex", "twist_shape",
-    "pose_nan", "pose_inf", "pose_not_rotation", "pose_not_se3",
+    "q_nan",
+    "q_inf",
+    "q_complex",
+    "q_shape",
+    "q_type",
+    "q_degrees",
+    "q_out_little",
+    "q_out_far",
+    "dq_nan",
+    "dq_inf",
+    "dq_complex",
+    "dq_shape",
+    "twist_nan",
+    "twist_inf",
+    "twist_complex",
+    "twist_shape",
+    "pose_nan",
+    "pose_inf",
+    "pose_not_rotation",
+    "pose_not_se3",
 )
 """Bad inputs sent between two valid ticks (one ``step`` call each, the plant does not move)."""
 
@@ -113,5 +129,7 @@ class Where:
     recent: str = ""  # the last disturbance before this tick
 
     def short(self) -> str:
-        return (f"{self.strategy}, seed {self.seed} episode {self.episode} tick {self.tick}, start {self.start}, "
-                f"phase {self.phase}" + (f", after {self.recent}" if self.recent else ""))
+        return (
+            f"{self.strategy}, seed {self.seed} episode {self.episode} tick {self.tick}, start {self.start}, "
+            f"phase {self.phase}" + (f", after {self.recent}" if self.recent else "")
+        )

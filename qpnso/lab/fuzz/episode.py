@@ -119,8 +119,10 @@ class Episode:
                     return
                 yield phase, k
             if phase.kind == "pull":
-                self._disturbed(f"pull at {np.linalg.norm(phase.amp[:3]):.3g} m/s ending at tick {self.tick}",
-                                self.pull_from_ok)
+                assert phase.amp is not None  # a pull has its twist
+                self._disturbed(
+                    f"pull at {np.linalg.norm(phase.amp[:3]):.3g} m/s ending at tick {self.tick}", self.pull_from_ok
+                )
 
     def _begin(self, phase: Phase) -> None:
         self.where.phase = phase.kind
@@ -133,7 +135,8 @@ class Episode:
             self.pending, self.pull_from_ok = None, self.recovered
         robot = self.checker.robot
         if phase.kind == "overshoot" and 0 <= limit_distance(robot, self.q) < math.radians(
-                self.config.overshoot_within_deg):
+            self.config.overshoot_within_deg
+        ):
             self.q = _outside(self.rng, robot, self.q, 0.01, self.config.overshoot_max_deg, nearest=True)
             self.dq = np.zeros(self.q.size)
             self._disturbed(f"overshoot past a limit at tick {self.tick}", self.recovered)
@@ -150,8 +153,16 @@ class Episode:
         cfg = self.config
         size = int(self.rng.integers(1, cfg.probe_burst_max + 1))
         kinds = [cfg.probe_kinds[int(i)] for i in self.rng.integers(len(cfg.probe_kinds), size=size)]
-        outcomes = [send_probe(self.ctrl, make_probe(kind, self.rng, self.q, self.dq, self.checker.robot, cfg),
-                               self.checker, self.where, self.clock) for kind in kinds]
+        outcomes = [
+            send_probe(
+                self.ctrl,
+                make_probe(kind, self.rng, self.q, self.dq, self.checker.robot, cfg),
+                self.checker,
+                self.where,
+                self.clock,
+            )
+            for kind in kinds
+        ]
         what = f"bad inputs {','.join(kinds)} before tick {self.tick}"
         if "accepted" in outcomes:  # the controller acted on a q the plant never had; a refused one must not count
             self.hold.glitch()
@@ -180,8 +191,9 @@ class Episode:
         self.report.count_tick(self.strategy)
         if cmd is not None and cmd.status & Status.QP_DEADLINE:
             self.report.deadline_ticks += 1
-        finite = cmd is not None and chk.command(cmd, self.q, where, inputs, cpu_time=cpu,
-                                                 solver_cpu_time=self.clock.take(cpu))
+        finite = cmd is not None and chk.command(
+            cmd, self.q, where, inputs, cpu_time=cpu, solver_cpu_time=self.clock.take(cpu)
+        )
         self.failures_in_row = 0 if finite else self.failures_in_row + 1
         if cmd is not None and self.strategy in cfg.rom_strategies:
             self.rom_out = chk.rom(cmd, self.rom_out, where, inputs)

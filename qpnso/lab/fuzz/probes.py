@@ -61,8 +61,9 @@ def _bad_vector(kind: str, rng: np.random.Generator, v: np.ndarray) -> tuple[obj
     return options[k], f"type {type(options[k]).__name__}"
 
 
-def _outside(rng: np.random.Generator, robot: Robot, q: np.ndarray, lo_deg: float, hi_deg: float,
-             nearest: bool = False) -> np.ndarray:
+def _outside(
+    rng: np.random.Generator, robot: Robot, q: np.ndarray, lo_deg: float, hi_deg: float, nearest: bool = False
+) -> np.ndarray:
     """``q`` with one joint outside a limit by ``lo_deg``–``hi_deg`` degrees: a random joint and side, or
     (``nearest``) the joint and side nearest to a limit, as an encoder overshoot."""
     q = q.copy()
@@ -82,8 +83,9 @@ def limit_distance(robot: Robot, q: np.ndarray) -> float:
     return float(np.min(np.minimum(q - robot.q_min, robot.q_max - q)))
 
 
-def make_probe(kind: str, rng: np.random.Generator, q: np.ndarray, dq: np.ndarray, robot: Robot,
-               config: FuzzConfig) -> Probe:
+def make_probe(
+    kind: str, rng: np.random.Generator, q: np.ndarray, dq: np.ndarray, robot: Robot, config: FuzzConfig
+) -> Probe:
     """The bad input ``kind`` (:data:`PROBE_KINDS`) at the plant's ``q`` (rad) and velocity ``dq`` (rad/s)."""
     what, _, how = kind.partition("_")
     far = math.radians(config.far_outside_deg)
@@ -93,11 +95,15 @@ def make_probe(kind: str, rng: np.random.Generator, q: np.ndarray, dq: np.ndarra
         return Probe(kind, {"q": qd}, out > far, qd, f"q in degrees (outside by up to {out:.3g} rad)")
     if kind == "q_out_little":
         qo = _outside(rng, robot, q, 0.01, config.overshoot_max_deg, nearest=True)
-        return Probe(kind, {"q": qo}, False, qo, f"q: the joint nearest a limit past it by < "
-                     f"{config.overshoot_max_deg}°")
+        return Probe(
+            kind, {"q": qo}, False, qo, f"q: the joint nearest a limit past it by < {config.overshoot_max_deg}°"
+        )
     if kind == "q_out_far":
-        qo = _outside(rng, robot, q, config.far_outside_deg + 1.0, 180.0) if rng.random() < 0.9 \
+        qo = (
+            _outside(rng, robot, q, config.far_outside_deg + 1.0, 180.0)
+            if rng.random() < 0.9
             else np.full(robot.nq, 1e6)
+        )
         return Probe(kind, {"q": qo}, True, qo, f"q outside its limits by > {config.far_outside_deg}°")
     if what == "pose":
         return _pose_probe(kind, how, rng, q, robot)
@@ -125,8 +131,9 @@ def _pose_probe(kind: str, how: str, rng: np.random.Generator, q: np.ndarray, ro
     return Probe(kind, {"q": q, "tool_pose": bad}, True, q, desc)
 
 
-def send_probe(ctrl: Controller, probe: Probe, checker: TickChecker, where: Where,
-               clock: SolverClock | None = None) -> str:
+def send_probe(
+    ctrl: Controller, probe: Probe, checker: TickChecker, where: Where, clock: SolverClock | None = None
+) -> str:
     """Call ``ctrl.step`` with a bad input: ``refused`` (a QpnsoError), ``foreign`` (another exception,
     counted with its traceback) or ``accepted`` (counted if it had to be refused; its command checked, with
     its CPU times when ``clock`` is the controller's :class:`SolverClock`)."""
@@ -151,7 +158,14 @@ def send_probe(ctrl: Controller, probe: Probe, checker: TickChecker, where: Wher
             rep.record("bad_accepted", 1.0, where, inputs, f"{probe.description}: accepted, status {cmd.status}")
         cpu = time.thread_time() - cpu
         if probe.q is not None and np.all(np.isfinite(probe.q)):
-            checker.command(cmd, np.asarray(probe.q, dtype=float), where, inputs, timed=False, cpu_time=cpu,
-                            solver_cpu_time=math.inf if clock is None else clock.take(cpu))
+            checker.command(
+                cmd,
+                np.asarray(probe.q, dtype=float),
+                where,
+                inputs,
+                timed=False,
+                cpu_time=cpu,
+                solver_cpu_time=math.inf if clock is None else clock.take(cpu),
+            )
     rep.count_probe(probe.kind, outcome)
     return outcome

@@ -36,19 +36,34 @@ CHECKS = (
     Check("foreign_exception", "0 exceptions that are not QpnsoError", ""),
     Check("valid_refused", "0 valid closed-loop ticks refused with a QpnsoError", ""),
     Check("bad_accepted", "every bad input refused with a QpnsoError", ""),
-    Check("drift", "held-tool drift < {drift_tol_m:g} m / {drift_tol_rad:g} rad from non-singular starts",
-          "m or rad"),
-    Check("solve_time", "0 ticks over {solve_time_max:g} s of solver time (cmd.solve_time, unless the solver "
-          "used less CPU time than that: then the machine preempted it, counted below)", "s"),
-    Check("preempted", "ticks over {solve_time_max:g} s of solver wall time in which the solver used less CPU "
-          "time than that (time.thread_time: the machine, not the code; reported, not a must-hold line)", "s",
-          must_hold=False),
-    Check("rom_excursion", "0 ticks with the arm angle outside ROM_t and moving away without "
-          "ELBOW_SLACK/ROM_EMPTY (strategies {rom_strategies}; reported, not a must-hold line)", "rad",
-          must_hold=False),
-    Check("recovery", "recovery to OK (cmd.ok, the tool within {recovery_tol_m:g} m or closing at ≥ half the "
-          "capped correction speed) within {recovery_ticks} ticks after a disturbance that leaves a reachable "
-          "reference", "ticks"),
+    Check("drift", "held-tool drift < {drift_tol_m:g} m / {drift_tol_rad:g} rad from non-singular starts", "m or rad"),
+    Check(
+        "solve_time",
+        "0 ticks over {solve_time_max:g} s of solver time (cmd.solve_time, unless the solver "
+        "used less CPU time than that: then the machine preempted it, counted below)",
+        "s",
+    ),
+    Check(
+        "preempted",
+        "ticks over {solve_time_max:g} s of solver wall time in which the solver used less CPU "
+        "time than that (time.thread_time: the machine, not the code; reported, not a must-hold line)",
+        "s",
+        must_hold=False,
+    ),
+    Check(
+        "rom_excursion",
+        "0 ticks with the arm angle outside ROM_t and moving away without "
+        "ELBOW_SLACK/ROM_EMPTY (strategies {rom_strategies}; reported, not a must-hold line)",
+        "rad",
+        must_hold=False,
+    ),
+    Check(
+        "recovery",
+        "recovery to OK (cmd.ok, the tool within {recovery_tol_m:g} m or closing at ≥ half the "
+        "capped correction speed) within {recovery_ticks} ticks after a disturbance that leaves a reachable "
+        "reference",
+        "ticks",
+    ),
 )
 CHECK_KEYS = tuple(c.key for c in CHECKS)
 
@@ -138,13 +153,22 @@ class FuzzReport:
         """Solver and whole-tick times (s): p50, p99, p99.9, max and the count over ``solve_time_max``;
         recovery ticks: p50, p99, max."""
         out: dict[str, dict[str, float]] = {}
-        for name, values in (("solve_time", self.solve_times), ("tick_time", self.tick_times),
-                             ("tick_cpu_time", self.tick_cpu_times)):
+        for name, values in (
+            ("solve_time", self.solve_times),
+            ("tick_time", self.tick_times),
+            ("tick_cpu_time", self.tick_cpu_times),
+        ):
             a = np.asarray(values, dtype=float)
             if a.size:
                 p50, p99, p999 = np.percentile(a, [50, 99, 99.9])
-                out[name] = {"p50": float(p50), "p99": float(p99), "p99.9": float(p999), "max": float(a.max()),
-                             "over_max": int(np.count_nonzero(a > self.config.solve_time_max)), "n": int(a.size)}
+                out[name] = {
+                    "p50": float(p50),
+                    "p99": float(p99),
+                    "p99.9": float(p999),
+                    "max": float(a.max()),
+                    "over_max": int(np.count_nonzero(a > self.config.solve_time_max)),
+                    "n": int(a.size),
+                }
         if self.recovery:
             r = np.asarray(self.recovery, dtype=float)
             p50, p99 = np.percentile(r, [50, 99])
@@ -155,8 +179,10 @@ class FuzzReport:
         """Every must-hold line violated, with its count and worst example; and a run that stopped short."""
         out = []
         if self.completed is False:
-            out.append(f"the run stopped after {self.ticks} of {self.config.ticks} ticks "
-                       f"({self.wall_seconds:.0f} s; max_seconds {self.config.max_seconds})")
+            out.append(
+                f"the run stopped after {self.ticks} of {self.config.ticks} ticks "
+                f"({self.wall_seconds:.0f} s; max_seconds {self.config.max_seconds})"
+            )
         for check in CHECKS:
             n = self.counts[check.key]
             if n and check.must_hold:
@@ -171,55 +197,81 @@ class FuzzReport:
     def table(self) -> str:
         """Markdown: one row per check (count, worst example), then timings, recovery and bad inputs."""
         cfg = self.config
-        lines = [f"### qpnso fuzz: {self.ticks} ticks, {self.probes} bad inputs, {self.episodes} episodes, "
-                 f"seed {cfg.seed}, {cfg.robot}, strategies {','.join(cfg.strategies)}"
-                 + (", garbage collector frozen after the controllers were built (realtime_gc)" if cfg.freeze_gc
-                    else ""), "",
-                 "| check | count | worst |", "|---|---|---|"]
+        lines = [
+            f"### qpnso fuzz: {self.ticks} ticks, {self.probes} bad inputs, {self.episodes} episodes, "
+            f"seed {cfg.seed}, {cfg.robot}, strategies {','.join(cfg.strategies)}"
+            + (", garbage collector frozen after the controllers were built (realtime_gc)" if cfg.freeze_gc else ""),
+            "",
+            "| check | count | worst |",
+            "|---|---|---|",
+        ]
         for check in CHECKS:
             ex = self.worst.get(check.key)
             worst = f"{ex.value:.4g} {check.unit}: {ex.where.short()}{_detail(ex)}" if ex else "—"
             lines.append(f"| {self._text(check)} | {self.counts[check.key]} | {worst.replace('|', '/')} |")
-        lines += ["", f"| time | p50 µs | p99 µs | p99.9 µs | max µs | over {1e3 * cfg.solve_time_max:g} ms |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            f"| time | p50 µs | p99 µs | p99.9 µs | max µs | over {1e3 * cfg.solve_time_max:g} ms |",
+            "|---|---|---|---|---|---|",
+        ]
         pct = self.percentiles()
         for name in ("solve_time", "tick_time", "tick_cpu_time"):
             if name in pct:
                 p = pct[name]
-                lines.append(f"| {name} | {1e6 * p['p50']:.0f} | {1e6 * p['p99']:.0f} | {1e6 * p['p99.9']:.0f} | "
-                             f"{1e6 * p['max']:.0f} | {p['over_max']} |")
+                lines.append(
+                    f"| {name} | {1e6 * p['p50']:.0f} | {1e6 * p['p99']:.0f} | {1e6 * p['p99.9']:.0f} | "
+                    f"{1e6 * p['max']:.0f} | {p['over_max']} |"
+                )
         r = pct.get("recovery_ticks")
-        lines += ["", f"recovery: {len(self.recovery)} measured"
-                  + (f", p50 {r['p50']:.0f}, p99 {r['p99']:.0f}, max {r['max']:.0f} ticks" if r else "")
-                  + f"; {self.recovery_censored} censored; {self.recovery_unreachable} with an unreachable reference"
-                  + f"; {self.recovery_elbow_undefined} with the arm angle undefined at the held pose (not counted: "
-                    "the wrist centre fixes it, no self-motion changes it)"]
+        lines += [
+            "",
+            f"recovery: {len(self.recovery)} measured"
+            + (f", p50 {r['p50']:.0f}, p99 {r['p99']:.0f}, max {r['max']:.0f} ticks" if r else "")
+            + f"; {self.recovery_censored} censored; {self.recovery_unreachable} with an unreachable reference"
+            + f"; {self.recovery_elbow_undefined} with the arm angle undefined at the held pose (not counted: "
+            "the wrist centre fixes it, no self-motion changes it)",
+        ]
         refused = sum(v.get("refused", 0) for v in self.probe_outcomes.values())
         accepted = sum(v.get("accepted", 0) for v in self.probe_outcomes.values())
         lines.append(f"bad inputs: {self.probes} sent, {refused} refused, {accepted} accepted")
         per = ", ".join(f"{s} {v.get('ticks', 0)}" for s, v in sorted(self.by_strategy.items()))
-        lines.append(f"ticks per strategy: {per}; held ticks checked for drift {self.drift_checked}; "
-                     f"ticks out of solver_time_budget ({cfg.solver_time_budget}) {self.deadline_ticks}; "
-                     f"episodes cut short (over {cfg.episode_seconds:g} s) {self.episodes_cut}; "
-                     f"wall {self.wall_seconds:.1f} s")
+        lines.append(
+            f"ticks per strategy: {per}; held ticks checked for drift {self.drift_checked}; "
+            f"ticks out of solver_time_budget ({cfg.solver_time_budget}) {self.deadline_ticks}; "
+            f"episodes cut short (over {cfg.episode_seconds:g} s) {self.episodes_cut}; "
+            f"wall {self.wall_seconds:.1f} s"
+        )
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
         """Plain JSON data (no per-tick arrays)."""
-        return _jsonable({
-            "config": self.config.to_dict(), "ticks": self.ticks, "probes": self.probes, "episodes": self.episodes,
-            "checks": {c.key: self._text(c) for c in CHECKS}, "counts": self.counts,
-            "failures": self.failures(),
-            "worst": {k: asdict(v) for k, v in self.worst.items()},
-            "first": {k: asdict(v) for k, v in self.first.items()}, "by_strategy": self.by_strategy,
-            "start_kinds": self.start_kinds, "probe_outcomes": self.probe_outcomes,
-            "percentiles": self.percentiles(), "recovery_censored": self.recovery_censored,
-            "recovery_unreachable": self.recovery_unreachable,
-            "recovery_elbow_undefined": self.recovery_elbow_undefined, "drift_checked": self.drift_checked,
-            "deadline_ticks": self.deadline_ticks,
-            "episodes_cut": self.episodes_cut, "completed": self.completed, "exceptions": self.exceptions,
-            "build_seconds": self.build_seconds, "wall_seconds": self.wall_seconds,
-        })  # type: ignore[return-value]
+        return _jsonable(
+            {
+                "config": self.config.to_dict(),
+                "ticks": self.ticks,
+                "probes": self.probes,
+                "episodes": self.episodes,
+                "checks": {c.key: self._text(c) for c in CHECKS},
+                "counts": self.counts,
+                "failures": self.failures(),
+                "worst": {k: asdict(v) for k, v in self.worst.items()},
+                "first": {k: asdict(v) for k, v in self.first.items()},
+                "by_strategy": self.by_strategy,
+                "start_kinds": self.start_kinds,
+                "probe_outcomes": self.probe_outcomes,
+                "percentiles": self.percentiles(),
+                "recovery_censored": self.recovery_censored,
+                "recovery_unreachable": self.recovery_unreachable,
+                "recovery_elbow_undefined": self.recovery_elbow_undefined,
+                "drift_checked": self.drift_checked,
+                "deadline_ticks": self.deadline_ticks,
+                "episodes_cut": self.episodes_cut,
+                "completed": self.completed,
+                "exceptions": self.exceptions,
+                "build_seconds": self.build_seconds,
+                "wall_seconds": self.wall_seconds,
+            }
+        )  # type: ignore[return-value]
 
 
 def _detail(ex: Example) -> str:
@@ -231,5 +283,12 @@ def record_exception(report: FuzzReport, exc: BaseException, where: Where, input
     text = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
     report.record("foreign_exception", 1.0, where, inputs, f"{type(exc).__name__}: {exc}")
     if len(report.exceptions) < report.max_exceptions_kept:
-        report.exceptions.append({"where": asdict(where), "type": type(exc).__name__, "message": str(exc),
-                                  "input": _jsonable(inputs), "traceback": text})
+        report.exceptions.append(
+            {
+                "where": asdict(where),
+                "type": type(exc).__name__,
+                "message": str(exc),
+                "input": _jsonable(inputs),
+                "traceback": text,
+            }
+        )

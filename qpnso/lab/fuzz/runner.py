@@ -11,9 +11,8 @@ import math
 import time
 from typing import Iterator
 
-from qpnso.control.controller import Controller
-
 from qpnso.control.config import ControllerConfig
+from qpnso.control.controller import Controller
 from qpnso.lab.fuzz.checker import TickChecker
 from qpnso.lab.fuzz.config import FuzzConfig, Observer, Progress
 from qpnso.lab.fuzz.episode import Episode, SolverClock
@@ -37,8 +36,12 @@ class Fuzzer:
         ctrl = self._controllers.get(strategy)
         if ctrl is None:
             t0 = time.perf_counter()
-            ctrl = Controller(self.robot, ControllerConfig(strategy=strategy, compile=self.config.compile,
-                                                           solver_time_budget=self.config.solver_time_budget))
+            ctrl = Controller(
+                self.robot,
+                ControllerConfig(
+                    strategy=strategy, compile=self.config.compile, solver_time_budget=self.config.solver_time_budget
+                ),
+            )
             ctrl.cost.wait_compiled()
             ctrl.evaluate.wait_compiled()
             self.report.build_seconds[strategy] = time.perf_counter() - t0

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -77,12 +77,12 @@ class _Native:
 
         self._px = proxsuite.proxqp
         self._settings = settings
-        self._qps: dict[tuple, object] = {}
+        self._qps: dict[tuple, Any] = {}  # ProxSuite's QP objects (no type information)
 
     def solve(self, p: BenchProblem):
         box = p.box_l is not None
         key = (p.sequence, p.level, p.nv, p.C.shape[0], box)
-        data = dict(H=p.P, g=p.q)
+        data: dict[str, np.ndarray | None] = dict(H=p.P, g=p.q)
         if p.C.shape[0]:
             data.update(C=p.C, l=p.l, u=p.u)
         if box:
@@ -130,11 +130,13 @@ def available(solvers: Iterable[str] | None = None) -> tuple[list[str], dict[str
     installed = list(qpsolvers.available_solvers)
     try:
         import proxsuite  # noqa: F401
+
         native = True
     except ImportError:
         native = False
     wanted = ([NATIVE] + sorted(installed)) if solvers is None else list(solvers)
-    usable, skipped = [], {}
+    usable: list[str] = []
+    skipped: dict[str, str] = {}
     for s in wanted:
         if s == NATIVE:
             (usable.append(s) if native else skipped.__setitem__(s, "proxsuite is not installed"))

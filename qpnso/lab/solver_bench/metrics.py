@@ -11,7 +11,7 @@ import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -23,8 +23,16 @@ SGM_SHIFT_US = 10.0
 """Shift of the shifted geometric mean of solve times, µs (qpbenchmark's 10, in our time unit)."""
 
 
-CSV_COLUMNS = ("solver", "settings", "success_rate", "runtime_sgm", "runtime_median_us",
-               "primal_residual", "dual_residual", "duality_gap")
+CSV_COLUMNS = (
+    "solver",
+    "settings",
+    "success_rate",
+    "runtime_sgm",
+    "runtime_median_us",
+    "primal_residual",
+    "dual_residual",
+    "duality_gap",
+)
 """First columns of ``results.csv`` (more follow)."""
 
 
@@ -93,7 +101,7 @@ def summarize(outcomes: Sequence[Outcome], reference_solver: str = "proxqp") -> 
     groups: dict[tuple[str, str], list[Outcome]] = {}
     for o in outcomes:
         groups.setdefault((o.solver, o.settings), []).append(o)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for (solver, setting), group in groups.items():
         limit_us = group[0].time_limit_s * 1e6
         charged = [o.time_s * 1e6 if o.success else limit_us for o in group]
@@ -102,23 +110,31 @@ def summarize(outcomes: Sequence[Outcome], reference_solver: str = "proxqp") -> 
 
         def stat(fn, key: str, among: list[Outcome]) -> float:
             return float(fn([getattr(o, key) for o in among])) if among else math.nan
+
         failures: dict[str, int] = {}
         for o in group:
             if not o.success:
                 failures[o.status] = failures.get(o.status, 0) + 1
-        rows.append({
-            "solver": solver, "settings": setting,
-            "success_rate": 100.0 * sum(o.success for o in group) / len(group),
-            "runtime_sgm": shifted_geometric_mean(charged, SGM_SHIFT_US),
-            "runtime_median_us": float(np.median([o.time_s for o in group]) * 1e6),
-            "primal_residual": stat(np.median, "primal", found), "dual_residual": stat(np.median, "dual", found),
-            "duality_gap": stat(np.median, "gap", found),
-            "cost_error": stat(np.median, "cost_error", good), "cost_error_max": stat(np.max, "cost_error", good),
-            "dq_error_max_L2": stat(np.max, "x_error", [o for o in good if o.level == 2]), "primal_residual_max": stat(np.max, "primal", found),
-            "runtime_p99_us": float(np.percentile([o.time_s for o in group], 99) * 1e6),
-            "problems": len(group), "found": len(found),
-            "failures": "; ".join(f"{n}× {s}" for s, n in sorted(failures.items(), key=lambda kv: -kv[1])),
-        })
+        rows.append(
+            {
+                "solver": solver,
+                "settings": setting,
+                "success_rate": 100.0 * sum(o.success for o in group) / len(group),
+                "runtime_sgm": shifted_geometric_mean(charged, SGM_SHIFT_US),
+                "runtime_median_us": float(np.median([o.time_s for o in group]) * 1e6),
+                "primal_residual": stat(np.median, "primal", found),
+                "dual_residual": stat(np.median, "dual", found),
+                "duality_gap": stat(np.median, "gap", found),
+                "cost_error": stat(np.median, "cost_error", good),
+                "cost_error_max": stat(np.max, "cost_error", good),
+                "dq_error_max_L2": stat(np.max, "x_error", [o for o in good if o.level == 2]),
+                "primal_residual_max": stat(np.max, "primal", found),
+                "runtime_p99_us": float(np.percentile([o.time_s for o in group], 99) * 1e6),
+                "problems": len(group),
+                "found": len(found),
+                "failures": "; ".join(f"{n}× {s}" for s, n in sorted(failures.items(), key=lambda kv: -kv[1])),
+            }
+        )
     for setting in {r["settings"] for r in rows}:
         same = [r for r in rows if r["settings"] == setting]
         best = min(r["runtime_sgm"] for r in same)

@@ -12,11 +12,14 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from qpnso.errors import InputError
+
+if TYPE_CHECKING:
+    import qpsolvers
 
 PROBLEM_DIR = Path(__file__).resolve().parents[3] / "solvers" / "problems"
 """Where the committed problem sets are (``solvers/problems`` of the checkout)."""
@@ -63,7 +66,7 @@ class BenchProblem:
 
     def decode(self, v: np.ndarray) -> np.ndarray:
         """Joint velocity (rad/s) of a solution ``v``."""
-        return self.x_prev + self.Z @ v[:self.Z.shape[1]]
+        return self.x_prev + self.Z @ v[: self.Z.shape[1]]
 
 
 @dataclass
@@ -75,7 +78,7 @@ class StandardForm:
     ``C`` row of each equality; ``box``: the box is ``lb/ub`` of the problem.
     """
 
-    problem: object
+    problem: qpsolvers.Problem
     g_src: np.ndarray
     g_sign: np.ndarray
     a_src: np.ndarray
@@ -85,8 +88,11 @@ class StandardForm:
         """``(y, z, z_box)`` of the standard form from two-sided duals (ProxSuite's sign:
         ``> 0`` upper side active, ``< 0`` lower side active)."""
         zb = np.zeros(0) if z_box is None else z_box
-        src = np.where(self.g_src >= 0, z_rows[np.maximum(self.g_src, 0)] if z_rows.size else 0.0,
-                       zb[np.maximum(-1 - self.g_src, 0)] if zb.size else 0.0)
+        src = np.where(
+            self.g_src >= 0,
+            z_rows[np.maximum(self.g_src, 0)] if z_rows.size else 0.0,
+            zb[np.maximum(-1 - self.g_src, 0)] if zb.size else 0.0,
+        )
         z = np.maximum(self.g_sign * src, 0.0)
         y = z_rows[self.a_src]
         return (y if y.size else None), (z if z.size else None), (z_box if self.box else None)
@@ -107,10 +113,11 @@ def standard_form(p: BenchProblem) -> StandardForm:
     h = [p.u[up], -p.l[down]]
     g_src = [np.flatnonzero(up), np.flatnonzero(down)]
     g_sign = [np.ones(up.sum()), -np.ones(down.sum())]
-    box = p.box_l is not None and bool(np.isfinite(p.box_l).all() and np.isfinite(p.box_u).all())
-    if p.box_l is not None and not box:
+    box_l, box_u = p.box_l, p.box_u  # both None (no box) or both arrays
+    box = box_l is not None and box_u is not None and bool(np.isfinite(box_l).all() and np.isfinite(box_u).all())
+    if box_l is not None and box_u is not None and not box:
         eye = np.eye(p.nv)
-        for side, bound, sign in ((np.isfinite(p.box_u), p.box_u, 1.0), (np.isfinite(p.box_l), p.box_l, -1.0)):
+        for side, bound, sign in ((np.isfinite(box_u), box_u, 1.0), (np.isfinite(box_l), box_l, -1.0)):
             idx = np.flatnonzero(side)
             rows.append(sign * eye[idx])
             h.append(sign * bound[idx])
@@ -118,11 +125,17 @@ def standard_form(p: BenchProblem) -> StandardForm:
             g_sign.append(np.full(idx.size, sign))
     G, hv = np.vstack(rows), np.concatenate(h)
     A, b = p.C[eq], p.l[eq]
-    problem = qpsolvers.Problem(p.P, p.q, G if hv.size else None, hv if hv.size else None,
-                                A if b.size else None, b if b.size else None,
-                                p.box_l if box else None, p.box_u if box else None)
-    return StandardForm(problem, np.concatenate(g_src).astype(int), np.concatenate(g_sign),
-                        np.flatnonzero(eq), box)
+    problem = qpsolvers.Problem(
+        p.P,
+        p.q,
+        G if hv.size else None,
+        hv if hv.size else None,
+        A if b.size else None,
+        b if b.size else None,
+        p.box_l if box else None,
+        p.box_u if box else None,
+    )
+    return StandardForm(problem, np.concatenate(g_src).astype(int), np.concatenate(g_sign), np.flatnonzero(eq), box)
 
 
 _ARRAYS = ("P", "q", "C", "l", "u", "box_l", "box_u", "x_prev", "Z", "x_controller", "ref_v")
@@ -136,8 +149,10 @@ def save_problems(path: Path, problems: Sequence[BenchProblem], meta: dict | Non
     data: dict[str, np.ndarray] = {}
     for name in _ARRAYS:
         arrays = [getattr(p, name) for p in problems]
-        shapes = np.array([(-1, -1) if a is None else (a.shape + (1,))[:2] if a.ndim == 1 else a.shape
-                           for a in arrays], dtype=np.int64)
+        shapes = np.array(
+            [(-1, -1) if a is None else (a.shape + (1,))[:2] if a.ndim == 1 else a.shape for a in arrays],
+            dtype=np.int64,
+        )
         ndims = np.array([0 if a is None else a.ndim for a in arrays], dtype=np.int8)
         data[f"{name}__data"] = np.concatenate([np.zeros(0)] + [a.ravel() for a in arrays if a is not None])
         data[f"{name}__shape"], data[f"{name}__ndim"] = shapes, ndims
@@ -146,7 +161,7 @@ def save_problems(path: Path, problems: Sequence[BenchProblem], meta: dict | Non
     data["__meta"] = np.array(json.dumps(meta or {}))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, **data)
+    np.savez_compressed(path, **data)  # type: ignore[arg-type]  # NumPy's stub: **data could be allow_pickle
     return path
 
 
@@ -161,13 +176,14 @@ def load_problems(path: Path) -> tuple[list[BenchProblem], dict]:
         columns = {}
         for name in _ARRAYS:
             flat, shapes, ndims = f[f"{name}__data"], f[f"{name}__shape"], f[f"{name}__ndim"]
-            col, pos = [], 0
+            col: list[np.ndarray | None] = []
+            pos = 0
             for (r, c), nd in zip(shapes, ndims):
                 if nd == 0:
                     col.append(None)
                     continue
                 size = int(r * c)
-                a = flat[pos:pos + size]
+                a = flat[pos : pos + size]
                 col.append(a.reshape(r, c) if nd == 2 else a.copy())
                 pos += size
             columns[name] = col

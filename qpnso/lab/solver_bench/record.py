@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -24,8 +24,16 @@ BENCH_REGULARIZATION = 1e-7
 (strictly convex levels, unique reference solution); the native path ships with μ = 0."""
 
 
-def level_problems(n: int, levels: Sequence[Level], lb: np.ndarray | None, ub: np.ndarray | None, result,
-                   settings: QPSettings, sequence: str = "", tick: int = 0) -> list[BenchProblem]:
+def level_problems(
+    n: int,
+    levels: Sequence[Level],
+    lb: np.ndarray | None,
+    ub: np.ndarray | None,
+    result,
+    settings: QPSettings,
+    sequence: str = "",
+    tick: int = 0,
+) -> list[BenchProblem]:
     """The QP of each level (``n`` joint velocities) the controller's solver was asked (docs/method.md §7).
 
     Rebuilds the cascade with :func:`build_level_qp` / :func:`advance_cascade`,
@@ -49,12 +57,35 @@ def level_problems(n: int, levels: Sequence[Level], lb: np.ndarray | None, ub: n
     return out
 
 
-def _from_level_qp(qp: LevelQP, name: str, sequence: str, level: int, tick: int,
-                   x_controller: np.ndarray | None) -> BenchProblem:
-    c = lambda a: None if a is None else np.array(a, dtype=float)  # noqa: E731 (copies: no aliasing)
+def _from_level_qp(
+    qp: LevelQP, name: str, sequence: str, level: int, tick: int, x_controller: np.ndarray | None
+) -> BenchProblem:
     P = 0.5 * (qp.H + qp.H.T)  # symmetric to the last bit (it is up to ~1e-17; sip refuses otherwise)
-    return BenchProblem(name, sequence, level, tick, P, c(qp.g), c(qp.C), c(qp.l), c(qp.u),
-                        c(qp.box_l), c(qp.box_u), c(qp.x_prev), c(qp.Z), c(x_controller))
+    return BenchProblem(
+        name,
+        sequence,
+        level,
+        tick,
+        P,
+        _copy(qp.g),
+        _copy(qp.C),
+        _copy(qp.l),
+        _copy(qp.u),
+        _copy_or_none(qp.box_l),
+        _copy_or_none(qp.box_u),
+        _copy(qp.x_prev),
+        _copy(qp.Z),
+        _copy_or_none(x_controller),
+    )
+
+
+def _copy(a: np.ndarray) -> np.ndarray:
+    """A float copy (no aliasing)."""
+    return np.array(a, dtype=float)
+
+
+def _copy_or_none(a: np.ndarray | None) -> np.ndarray | None:
+    return None if a is None else _copy(a)
 
 
 class QPRecorder:
@@ -69,8 +100,14 @@ class QPRecorder:
     another μ (None: the controller's own settings).
     """
 
-    def __init__(self, ctrl, source: str, keep: Callable[[int], bool] = lambda k: True,
-                 chunk: Callable[[int], int] = lambda k: 0, regularization: float | None = None) -> None:
+    def __init__(
+        self,
+        ctrl,
+        source: str,
+        keep: Callable[[int], bool] = lambda k: True,
+        chunk: Callable[[int], int] = lambda k: 0,
+        regularization: float | None = None,
+    ) -> None:
         self.ctrl, self.source, self.keep, self.chunk = ctrl, source, keep, chunk
         settings = ctrl.qp.settings
         self.settings = settings if regularization is None else replace(settings, regularization=regularization)
@@ -83,8 +120,16 @@ class QPRecorder:
         def solve(levels, lb=None, ub=None, check=True, time_budget=None):
             result = original(levels, lb, ub, check, time_budget)
             if self.keep(self.ticks):
-                self.problems += level_problems(self.ctrl.qp.n, levels, lb, ub, result, self.settings,
-                                                f"{self.source}/c{self.chunk(self.ticks)}", self.ticks)
+                self.problems += level_problems(
+                    self.ctrl.qp.n,
+                    levels,
+                    lb,
+                    ub,
+                    result,
+                    self.settings,
+                    f"{self.source}/c{self.chunk(self.ticks)}",
+                    self.ticks,
+                )
             self.ticks += 1
             return result
 
@@ -133,42 +178,71 @@ def _track(ctrl, traj, q0: np.ndarray, ticks: int) -> None:
         q = q + dt * cmd.dq
 
 
-def _sources(seed: int):
+_Source = tuple[str, str, dict, Callable[..., Any], Callable[..., Any]]
+"""A recorded run: name, robot name, controller settings, trajectory factory (robot), q0 factory (robot, trajectory)."""
+
+
+def _sources(seed: int) -> list[_Source]:
     """``(name, robot name, controller settings, trajectory factory, q0 factory)`` of each recorded run:
     scenarios A and B (guidance), the guidance path on the iiwa14, held tools at random postures."""
-    from qpnso.lab.scenarios import load_scenario
     from qpnso.control.offline import initial_configuration
     from qpnso.control.trajectory import guidance_path, hold
+    from qpnso.lab.scenarios import load_scenario
 
-    out = []
+    out: list[_Source] = []
     for name in ("A", "B"):
         sc = load_scenario(name)
-        out.append((f"scenario{name}", sc.robot, sc.controller, lambda robot, sc=sc: sc.path(),
-                    lambda robot, traj, sc=sc: sc.start(robot)))
+        out.append(
+            (
+                f"scenario{name}",
+                sc.robot,
+                sc.controller,
+                lambda robot, sc=sc: sc.path(),
+                lambda robot, traj, sc=sc: sc.start(robot),
+            )
+        )
 
     def iiwa_path(robot):
         q = np.radians([0.0, 40.0, 0.0, -80.0, 0.0, 60.0, 0.0])
         return guidance_path(robot.tool_pose(q), size=0.08, speed=0.05)
 
-    out.append(("guidance_iiwa14", "iiwa14", {}, iiwa_path,
-                lambda robot, traj: initial_configuration(robot, traj.pose(traj.t[0]))))
+    out.append(
+        (
+            "guidance_iiwa14",
+            "iiwa14",
+            {},
+            iiwa_path,
+            lambda robot, traj: initial_configuration(robot, traj.pose(traj.t[0])),
+        )
+    )
     rng = np.random.default_rng(seed)
     for robot_name in ("lwr4p", "iiwa14"):
         for i in range(2):
             u = rng.uniform(0.15, 0.85, 7)  # fraction of each joint range: away from the limits
-            out.append((f"hold_{robot_name}_{i}", robot_name, {},
-                        lambda robot, u=u: hold(robot.tool_pose(robot.q_min + u * (robot.q_max - robot.q_min)), 5.0),
-                        lambda robot, traj, u=u: robot.q_min + u * (robot.q_max - robot.q_min)))
+            out.append(
+                (
+                    f"hold_{robot_name}_{i}",
+                    robot_name,
+                    {},
+                    lambda robot, u=u: hold(robot.tool_pose(robot.q_min + u * (robot.q_max - robot.q_min)), 5.0),
+                    lambda robot, traj, u=u: robot.q_min + u * (robot.q_max - robot.q_min),
+                )
+            )
     return out
 
 
-def record_problem_set(path: Path, full: bool = False, seed: int = 0, progress: Callable[[str], None] | None = None,
-                       regularization: float = BENCH_REGULARIZATION) -> Path:
+def record_problem_set(
+    path: Path,
+    full: bool = False,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+    regularization: float = BENCH_REGULARIZATION,
+) -> Path:
     """Run the controller (default ``qp`` strategy, native ProxSuite) on every source of
     :func:`_sources`, record the QPs of the ticks the plan keeps, compute their references,
     save them to ``path``.  Deterministic for a given ``seed``."""
-    from qpnso.control.controller import Controller
     from qpnso.control.config import ControllerConfig
+    from qpnso.control.controller import Controller
     from qpnso.model.robot import load_robot
 
     plan = FULL_PLAN if full else QUICK_PLAN
@@ -183,6 +257,11 @@ def record_problem_set(path: Path, full: bool = False, seed: int = 0, progress: 
         if progress:
             progress(f"{name}: {rec.ticks} ticks, {len(rec.problems)} problems kept")
     compute_reference(problems)
-    meta = {"plan": plan.__dict__, "seed": seed, "regularization": regularization,
-            "recorded_with": "qpnso.lab.solver_bench.record_problem_set", "qp_backend": NATIVE}
+    meta = {
+        "plan": plan.__dict__,
+        "seed": seed,
+        "regularization": regularization,
+        "recorded_with": "qpnso.lab.solver_bench.record_problem_set",
+        "qp_backend": NATIVE,
+    }
     return save_problems(path, problems, meta)

@@ -40,8 +40,13 @@ def _table(rows: Sequence[dict], columns: Sequence[str]) -> str:
 def _versions(solvers: Sequence[str]) -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 
-    dist = {"proxsuite": "proxsuite", "proxqp": "proxsuite", "highs": "highspy", "sip": "sip-qp-python",
-            "pyqpmad": "pyqpmad"}
+    dist = {
+        "proxsuite": "proxsuite",
+        "proxqp": "proxsuite",
+        "highs": "highspy",
+        "sip": "sip-qp-python",
+        "pyqpmad": "pyqpmad",
+    }
     out = {}
     for s in list(solvers) + ["qpsolvers"]:
         try:
@@ -51,18 +56,31 @@ def _versions(solvers: Sequence[str]) -> dict[str, str]:
     return out
 
 
-def write_report(path: Path, rows: Sequence[dict], loop_rows: Sequence[dict], skipped: dict[str, str],
-                 meta: dict, n_problems: int, command: str, elapsed_s: float, solvers: Sequence[str],
-                 problem_set: Path, loop_info: str) -> Path:
+def write_report(
+    path: Path,
+    rows: Sequence[dict],
+    loop_rows: Sequence[dict],
+    skipped: dict[str, str],
+    meta: dict,
+    n_problems: int,
+    command: str,
+    elapsed_s: float,
+    solvers: Sequence[str],
+    problem_set: Path,
+    loop_info: str,
+) -> Path:
     versions = _versions(solvers)
     cols = list(CSV_COLUMNS) + ["time_ratio_to_proxqp", "cost_error", "cost_error_max", "dq_error_max_L2"]
     parts = [
-        "# QP solver benchmark on the controller's QPs", "",
+        "# QP solver benchmark on the controller's QPs",
+        "",
         f"Command: `{command}` ({elapsed_s:.0f} s, {platform.processor() or platform.machine()}, "
-        f"Python {platform.python_version()}).", "",
+        f"Python {platform.python_version()}).",
+        "",
         f"Problem set: `{problem_set.name}`, {n_problems} QPs (levels 1 and 2, consecutive ticks of "
         f"recorded runs; built with μ = {meta.get('regularization')}).  Solvers (version): "
-        + ", ".join(f"{s} {versions[s]}" for s in solvers) + f"; qpsolvers {versions['qpsolvers']}.",
+        + ", ".join(f"{s} {versions[s]}" for s in solvers)
+        + f"; qpsolvers {versions['qpsolvers']}.",
         "",
     ]
     if skipped:
@@ -73,10 +91,16 @@ def write_report(path: Path, rows: Sequence[dict], loop_rows: Sequence[dict], sk
         f"geometric mean of the time (shift {SGM_SHIFT_US:g} µs, a failure charged "
         f"{TIME_LIMIT_S * 1e3:g} ms) / the best; residuals, gap, cost error (|cost − reference|) "
         "= medians over returned solutions (cost error over successes), dq_error_max_L2 = worst "
-        "joint-velocity difference (rad/s) to the reference on level 2, whose answer is the command.  default: each solver's defaults, checked at 1e-3; high_accuracy: "
-        "eps_abs 1e-9, eps_rel 0 (qpbenchmark's mapping), checked at 1e-9.", "",
-        "## Results", "", _table(rows, cols), "",
-        "## Failures", "",
+        "joint-velocity difference (rad/s) to the reference on level 2, whose answer is the command.  "
+        "default: each solver's defaults, checked at 1e-3; high_accuracy: "
+        "eps_abs 1e-9, eps_rel 0 (qpbenchmark's mapping), checked at 1e-9.",
+        "",
+        "## Results",
+        "",
+        _table(rows, cols),
+        "",
+        "## Failures",
+        "",
     ]
     fails = [r for r in rows if r["failures"]]
     parts += [f"* {r['solver']} / {r['settings']}: {r['failures']}" for r in fails] or ["none"]
@@ -103,8 +127,9 @@ def plot_results(rows: Sequence[dict], loop_rows: Sequence[dict], path: Path) ->
     except ImportError:
         return None
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    solvers = sorted({r["solver"] for r in rows}, key=lambda s: min(
-        r["runtime_median_us"] for r in rows if r["solver"] == s))
+    solvers = sorted(
+        {r["solver"] for r in rows}, key=lambda s: min(r["runtime_median_us"] for r in rows if r["solver"] == s)
+    )
     width = 0.4
     for i, setting in enumerate(("default", "high_accuracy")):
         vals = [next((r for r in rows if r["solver"] == s and r["settings"] == setting), None) for s in solvers]
@@ -112,8 +137,15 @@ def plot_results(rows: Sequence[dict], loop_rows: Sequence[dict], path: Path) ->
         axes[0].bar(xs, [v["runtime_median_us"] if v else 0 for v in vals], width, label=setting)
         for x, v in zip(xs, vals):
             if v:
-                axes[0].text(x, v["runtime_median_us"], f"{v['success_rate']:.0f}%", ha="center",
-                             va="bottom", fontsize=6, rotation=90)
+                axes[0].text(
+                    x,
+                    v["runtime_median_us"],
+                    f"{v['success_rate']:.0f}%",
+                    ha="center",
+                    va="bottom",
+                    fontsize=6,
+                    rotation=90,
+                )
     axes[0].set_xticks(range(len(solvers)), solvers, rotation=45, ha="right")
     axes[0].set_yscale("log")
     axes[0].set_ylabel("median solve time per QP (µs), label: success %")
@@ -131,8 +163,13 @@ def plot_results(rows: Sequence[dict], loop_rows: Sequence[dict], path: Path) ->
     return path
 
 
-def run_solver_benchmark(out: Path, quick: bool = False, solvers: Sequence[str] | None = None,
-                         problems: Path | None = None, progress: Callable[[str], None] | None = None) -> Path:
+def run_solver_benchmark(
+    out: Path,
+    quick: bool = False,
+    solvers: Sequence[str] | None = None,
+    problems: Path | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Path:
     """Benchmark the QP solvers on the controller's QPs; returns the path of ``report.md``.
 
     Writes into ``out``: ``report.md`` (tables), ``results.csv`` (one row per solver ×
@@ -165,12 +202,25 @@ def run_solver_benchmark(out: Path, quick: bool = False, solvers: Sequence[str] 
     _write_rows_csv(loop_rows, out / "closed_loop.csv")
     plot_results(rows, loop_rows, out / "solver_bench.png")
     command = f"qpnso bench solvers{' --quick' if quick else ''} --out {out}"
-    info = (f"Scenario A guidance path, first {seconds:g} s offline (`solve_trajectory`), one run per "
-            "back end as `ControllerConfig.qp_backend` with its default options; `proxsuite` is the "
-            "shipped controller (native, warm, eps_abs 1e-11).  dq_diff_max: max |dq − dq of the first "
-            "row| (rad/s).  Times in µs.")
-    return write_report(out / "report.md", rows, loop_rows, skipped, meta, len(items), command,
-                        time.perf_counter() - t0, usable, problems, info)
+    info = (
+        f"Scenario A guidance path, first {seconds:g} s offline (`solve_trajectory`), one run per "
+        "back end as `ControllerConfig.qp_backend` with its default options; `proxsuite` is the "
+        "shipped controller (native, warm, eps_abs 1e-11).  dq_diff_max: max |dq − dq of the first "
+        "row| (rad/s).  Times in µs."
+    )
+    return write_report(
+        out / "report.md",
+        rows,
+        loop_rows,
+        skipped,
+        meta,
+        len(items),
+        command,
+        time.perf_counter() - t0,
+        usable,
+        problems,
+        info,
+    )
 
 
 def _write_rows_csv(rows: Sequence[dict], path: Path) -> Path:

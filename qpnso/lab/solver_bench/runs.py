@@ -28,9 +28,11 @@ from qpnso.lab.solver_bench.metrics import Outcome, kkt_residuals
 from qpnso.lab.solver_bench.problems import BenchProblem, StandardForm, standard_form
 
 
-def run_problems(problems: Sequence[BenchProblem], solvers: Iterable[str] | None = None,
-                 settings: Sequence[BenchSettings] = (DEFAULT, HIGH_ACCURACY)
-                 ) -> tuple[list[Outcome], dict[str, str]]:
+def run_problems(
+    problems: Sequence[BenchProblem],
+    solvers: Iterable[str] | None = None,
+    settings: Sequence[BenchSettings] = (DEFAULT, HIGH_ACCURACY),
+) -> tuple[list[Outcome], dict[str, str]]:
     """Solve every problem with every usable solver at every setting, problem-major
     (each problem: all settings × solvers in turn, so machine load hits all alike).
 
@@ -58,8 +60,9 @@ def run_problems(problems: Sequence[BenchProblem], solvers: Iterable[str] | None
     return outcomes, skipped
 
 
-def _outcome(p: BenchProblem, sf: StandardForm, s: BenchSettings, solver: str, found: bool, status: str,
-             t: float, x, y, z, zb) -> Outcome:
+def _outcome(
+    p: BenchProblem, sf: StandardForm, s: BenchSettings, solver: str, found: bool, status: str, t: float, x, y, z, zb
+) -> Outcome:
     if found and x is not None and x.shape == (p.nv,):
         primal, dual, gap = kkt_residuals(sf, x, y, z, zb)
         cost_error = abs(p.objective(x) - p.ref_obj) if p.ref_obj is not None else math.nan
@@ -82,15 +85,31 @@ def _outcome(p: BenchProblem, sf: StandardForm, s: BenchSettings, solver: str, f
     success = status == "solved"
     if not success:  # a rejected answer's errors are not reported as the solver's accuracy
         cost_error = x_error = math.nan
-    return Outcome(solver, s.name, p.name, found, status, t, primal, dual, gap, cost_error, x_error, success,
-                   s.time_limit_s, detail, p.level)
+    return Outcome(
+        solver,
+        s.name,
+        p.name,
+        found,
+        status,
+        t,
+        primal,
+        dual,
+        gap,
+        cost_error,
+        x_error,
+        success,
+        s.time_limit_s,
+        detail,
+        p.level,
+    )
 
 
 REFERENCE_SOLVERS = ("daqp", "quadprog", "proxqp")
 
 
-def compute_reference(problems: Sequence[BenchProblem], solvers: Sequence[str] = REFERENCE_SOLVERS,
-                      eps: float = 1e-12) -> None:
+def compute_reference(
+    problems: Sequence[BenchProblem], solvers: Sequence[str] = REFERENCE_SOLVERS, eps: float = 1e-12
+) -> None:
     """Fill ``ref_v``/``ref_obj`` with the most accurate of ``solvers`` at ``eps``
     (smallest ``max(r_p, r_d, r_g)``; DAQP and quadprog are exact active-set methods,
     ProxQP at 1e-12) and ``ref_spread`` with the largest cost difference to the
@@ -115,13 +134,23 @@ def compute_reference(problems: Sequence[BenchProblem], solvers: Sequence[str] =
         p.ref_spread = max((abs(p.objective(c[2]) - p.ref_obj) for c in good), default=math.nan)
 
 
-CLOSED_LOOP_KEYS = ("tool_position_error_max_m", "tool_rotation_error_max_deg", "constraint_proximity_deg",
-                    "rom_proximity_deg", "tick_time_median_us", "tick_time_p99_us", "solve_time_median_us",
-                    "solve_time_p99_us", "status_QP_FAILED_ticks", "status_ELBOW_SLACK_ticks")
+CLOSED_LOOP_KEYS = (
+    "tool_position_error_max_m",
+    "tool_rotation_error_max_deg",
+    "constraint_proximity_deg",
+    "rom_proximity_deg",
+    "tick_time_median_us",
+    "tick_time_p99_us",
+    "solve_time_median_us",
+    "solve_time_p99_us",
+    "status_QP_FAILED_ticks",
+    "status_ELBOW_SLACK_ticks",
+)
 
 
-def closed_loop(backends: Sequence[str], scenario: str = "A", seconds: float = 2.0,
-                options: Callable[[str], dict] | None = None) -> list[dict]:
+def closed_loop(
+    backends: Sequence[str], scenario: str = "A", seconds: float = 2.0, options: Callable[[str], dict] | None = None
+) -> list[dict]:
     """The scenario's guidance path (first ``seconds`` s, offline tracking) solved by the controller
     with each back end as ``qp_backend``; the run metrics per back end (:data:`CLOSED_LOOP_KEYS`),
     ``dq_diff_max`` = max |dq − dq of the first back end| over the run (rad/s) and the run's
@@ -132,9 +161,9 @@ def closed_loop(backends: Sequence[str], scenario: str = "A", seconds: float = 2
     controller refuses is reported with its error.
     """
     from qpnso.control.config import ControllerConfig
-    from qpnso.model.robot import load_robot
-    from qpnso.lab.scenarios import load_scenario
     from qpnso.control.offline import solve_trajectory
+    from qpnso.lab.scenarios import load_scenario
+    from qpnso.model.robot import load_robot
 
     sc = load_scenario(scenario)
     robot = load_robot(sc.robot)

@@ -77,7 +77,7 @@ def descend(values: np.ndarray, start: int, cyclic: bool, direction: int = 0) ->
         lower = [d for d in (-1, 1) if (j := neighbour(start, d)) is not None and values[j] < values[start]]
         if not lower:
             return start
-        direction = min(lower, key=lambda d: values[neighbour(start, d)])  # type: ignore[index]
+        direction = min(lower, key=lambda d: values[neighbour(start, d)])
     i, d = start, direction
     while True:
         j = neighbour(i, d)
@@ -124,6 +124,7 @@ class SelfMotionCurve:
         if sense not in ("min", "max"):
             raise InputError(f"sense must be 'min' or 'max', got {sense!r}")
         sign = 1.0 if sense == "min" else -1.0
+
         def f(ns: float) -> float:
             return sign * float(objective(self.measure(np.array([ns])))[0])
 
@@ -152,8 +153,9 @@ class SelfMotionCurve:
 
 
 # ----------------------------------------------------------- start poses
-def sample_start(robot: Robot, rng: np.random.Generator, threshold: float, max_draws: int = 10000
-                 ) -> tuple[np.ndarray, int]:
+def sample_start(
+    robot: Robot, rng: np.random.Generator, threshold: float, max_draws: int = 10000
+) -> tuple[np.ndarray, int]:
     """A uniform random configuration with ``σ_min(J Jᵀ) ≥ threshold`` and a defined arm angle.
 
     Returns ``(q, rejected draws)``.

@@ -31,8 +31,14 @@ def _start_curve(index: int, seed: int, opts: StudyOptions) -> tuple[SelfMotionC
 
 def _pose_record(curve: SelfMotionCurve, rejected: int) -> dict[str, Any]:
     iv = curve.interval
-    return {"q0": curve.q0.tolist(), "ns0_deg": math.degrees(curve.ns0), "interval_lo_deg": math.degrees(iv.lo),
-            "interval_hi_deg": math.degrees(iv.hi), "full_circle": bool(iv.full_circle), "rejected_draws": rejected}
+    return {
+        "q0": curve.q0.tolist(),
+        "ns0_deg": math.degrees(curve.ns0),
+        "interval_lo_deg": math.degrees(iv.lo),
+        "interval_hi_deg": math.degrees(iv.hi),
+        "full_circle": bool(iv.full_circle),
+        "rejected_draws": rejected,
+    }
 
 
 def reduction_pct(high: float, low: float) -> float:
@@ -77,8 +83,13 @@ def tradeoff_job(index: int, seed: int, opts: StudyOptions) -> dict[str, Any]:
     fric_opt = curve.extremum(friction_objective(tau))
     m_opt = float(mass_opt.measures.principal_mass()[0])
     f_opt = float(fric_opt.measures.friction_force(tau)[0])
-    out.update(principal_mass_start_kg=m0, friction_force_start_N=f0, mass_opt_kg=m_opt, friction_opt_N=f_opt,
-               optima_distance_rad=float(np.linalg.norm(mass_opt.q - fric_opt.q)))
+    out.update(
+        principal_mass_start_kg=m0,
+        friction_force_start_N=f0,
+        mass_opt_kg=m_opt,
+        friction_opt_N=f_opt,
+        optima_distance_rad=float(np.linalg.norm(mass_opt.q - fric_opt.q)),
+    )
     for w in opts.mass_shares:
         e = curve.extremum(weighted_objective(w, bench.cost.scales, tau))
         m_w, f_w = float(e.measures.principal_mass()[0]), float(e.measures.friction_force(tau)[0])
@@ -111,8 +122,13 @@ def uncertainty_job(index: int, seed: int, opts: StudyOptions) -> dict[str, Any]
         e = curve.extremum(friction_objective(tau * factor))
         increase.append((float(e.measures.friction_force(tau)[0]) - f_true) / f_true * 100.0)
         ns.append(math.degrees(e.ns))
-    return {**_pose_record(curve, rejected), "friction_opt_N": f_true, "friction_opt_ns_deg": math.degrees(true_opt.ns),
-            "increase_pct": increase, "perturbed_opt_ns_deg": ns}
+    return {
+        **_pose_record(curve, rejected),
+        "friction_opt_N": f_true,
+        "friction_opt_ns_deg": math.degrees(true_opt.ns),
+        "increase_pct": increase,
+        "perturbed_opt_ns_deg": ns,
+    }
 
 
 def scenarios_job(index: int, seed: int, opts: StudyOptions) -> dict[str, Any]:
@@ -125,5 +141,9 @@ def scenarios_job(index: int, seed: int, opts: StudyOptions) -> dict[str, Any]:
     job_seed = int(job_seed_sequence(seed, index).generate_state(1)[0])
     metrics = run_scenario(name, strategy, seed=job_seed, duration_scale=opts.duration_scale)
     margin = float(load_scenario(name).controller.get("safety_margin_deg", 10.0))
-    return {"scenario": name, "strategy": strategy, "safety_margin_deg": margin,
-            **{k: float(v) for k, v in metrics.items()}}
+    return {
+        "scenario": name,
+        "strategy": strategy,
+        "safety_margin_deg": margin,
+        **{k: float(v) for k, v in metrics.items()},
+    }

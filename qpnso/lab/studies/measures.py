@@ -33,11 +33,14 @@ def curve_function(cost: CostModel) -> ca.Function:
     for i in range(3):
         m = ca.mtimes(tool.jbar_v.T, ca.diag(a[:, i]))
         gram += ca.mtimes(m.T, m)
-    return cost.sym.function("study_measures", {
-        "mass": -ca.det(tool.lambda_inv_v),
-        "lambda_inv_v": ca.reshape(tool.lambda_inv_v, 9, 1),
-        "gram": ca.reshape(0.5 * (gram + gram.T), cost.robot.nq ** 2, 1),
-    })
+    return cost.sym.function(
+        "study_measures",
+        {
+            "mass": -ca.det(tool.lambda_inv_v),
+            "lambda_inv_v": ca.reshape(tool.lambda_inv_v, 9, 1),
+            "gram": ca.reshape(0.5 * (gram + gram.T), cost.robot.nq**2, 1),
+        },
+    )
 
 
 @dataclass(frozen=True)
@@ -84,8 +87,12 @@ class Workbench:
             if fn is None:
                 fn = self._maps[n] = self._fn.map(n)
             mass, lam, gram = (np.asarray(x) for x in fn(q.T))
-        return Measures(q, np.asarray(mass).reshape(-1), lam.T.reshape(n, 3, 3).transpose(0, 2, 1),
-                        gram.T.reshape(n, nq, nq).transpose(0, 2, 1))
+        return Measures(
+            q,
+            np.asarray(mass).reshape(-1),
+            lam.T.reshape(n, 3, 3).transpose(0, 2, 1),
+            gram.T.reshape(n, nq, nq).transpose(0, 2, 1),
+        )
 
     def tau_max(self) -> np.ndarray:
         return self.robot.friction.tau_max

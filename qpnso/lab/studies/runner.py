@@ -46,8 +46,14 @@ STUDIES: dict[str, Study] = {
     "workspace": Study(workspace_job, 1000, _POSE_OPTIONS, workspace_summary),
     "tradeoff": Study(tradeoff_job, 1000, (*_POSE_OPTIONS, "mass_shares"), tradeoff_summary),
     "uncertainty": Study(uncertainty_job, 100, (*_POSE_OPTIONS, "trials", "friction_sd"), uncertainty_summary),
-    "scenarios": Study(scenarios_job, len(SCENARIO_JOBS), ("duration_scale",), scenarios_summary,
-                       needs_workbench=False, fixed_n=len(SCENARIO_JOBS)),
+    "scenarios": Study(
+        scenarios_job,
+        len(SCENARIO_JOBS),
+        ("duration_scale",),
+        scenarios_summary,
+        needs_workbench=False,
+        fixed_n=len(SCENARIO_JOBS),
+    ),
 }
 """The studies :func:`run_study` knows."""
 
@@ -95,17 +101,30 @@ def run_study(
         try:
             import qpnso.lab.scenarios  # noqa: F401
         except ImportError as exc:
-            raise ConfigError(f"the scenarios study needs qpnso.lab.scenarios, which cannot be imported: {exc}") from None
+            raise ConfigError(
+                f"the scenarios study needs qpnso.lab.scenarios, which cannot be imported: {exc}"
+            ) from None
     stored = opts.subset(study.uses)
     worker_options = {**stored, "compile": opts.compile}
     spec = RunSpec(name, n_jobs, int(seed), stored)
     out = Path(out)
     t0 = time.perf_counter()
-    results = run_jobs(spec, partial(_run_job, name, worker_options), out,
-                       init=partial(_init_worker, worker_options) if study.needs_workbench else None,
-                       workers=workers, scheduler=scheduler, progress=progress)
-    summary = {"study": name, "seed": int(seed), "options": stored, **study.summarize(results, opts),
-               "seconds": time.perf_counter() - t0}
+    results = run_jobs(
+        spec,
+        partial(_run_job, name, worker_options),
+        out,
+        init=partial(_init_worker, worker_options) if study.needs_workbench else None,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
+    )
+    summary = {
+        "study": name,
+        "seed": int(seed),
+        "options": stored,
+        **study.summarize(results, opts),
+        "seconds": time.perf_counter() - t0,
+    }
     summary = _json_safe(summary)
     _atomic_bytes(out / "results.csv", _csv_bytes(csv_rows(name, results)))
     _atomic_bytes(out / f"{name}.png", plot_study(name, results, summary, opts))

@@ -385,7 +385,8 @@ def test_a_checked_pose_is_c_ordered(robot) -> None:
 def test_finish_command_by_hand() -> None:
     """The last step of every tick on hand values: dq clipped to ±dq_max with q_des following, τ saturated
     (a limit of 0 means none given), the ROM excursion flagged, a NaN replaced by the stop command."""
-    from qpnso.control.tick import FLAG_ELBOW_OUTSIDE_ROM, FLAG_INTERNAL_ERROR, FLAG_TORQUE_SATURATED, finish_command
+    from qpnso.control.flags import FLAG_ELBOW_OUTSIDE_ROM, FLAG_INTERNAL_ERROR, FLAG_TORQUE_SATURATED
+    from qpnso.control.tick import finish_command
 
     q, dq_max, tau_limit, g = np.zeros(3), np.array([1.0, 1.0, 1.0]), np.array([10.0, 0.0, 10.0]), np.ones(3)
     dq, tau = np.array([1.5, -0.5, -2.0]), np.array([12.0, 50.0, -3.0])
@@ -407,7 +408,8 @@ def test_finish_command_by_hand() -> None:
 def test_sanitize_state_by_hand(robot, controllers) -> None:
     """An undefined cost is zeroed and flagged, an undefined arm angle made singular (its sine 0), a
     non-finite pose, J, A or g flagged INTERNAL_ERROR; a finite state is left alone."""
-    from qpnso.control.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state
+    from qpnso.control.flags import FLAG_COST_UNDEFINED, FLAG_INTERNAL_ERROR
+    from qpnso.control.state import sanitize_state
 
     ev = controllers["qp"].evaluate
     o = ev.offsets
@@ -417,12 +419,12 @@ def test_sanitize_state_by_hand(robot, controllers) -> None:
     np.testing.assert_array_equal(flat, clean)
     flat[o[4] + 2] = np.nan  # a cost-gradient entry
     flat[o[5]] = np.inf  # the arm angle
-    assert sanitize_state(flat, o) == COST_UNDEFINED_BIT
+    assert sanitize_state(flat, o) == FLAG_COST_UNDEFINED
     np.testing.assert_array_equal(flat[o[3] : o[5]], 0.0)
     np.testing.assert_array_equal(flat[o[5] : o[8]], 0.0)  # wrist sine 0: singular
     np.testing.assert_array_equal(flat[: o[3]], clean[: o[3]])
     flat[o[9]] = np.nan  # gravity
-    assert sanitize_state(flat, o) & INTERNAL_ERROR_BIT
+    assert sanitize_state(flat, o) & FLAG_INTERNAL_ERROR
 
 
 def test_an_unexpected_exception_stops_the_joints_and_says_why(robot, monkeypatch) -> None:

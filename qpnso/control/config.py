@@ -8,12 +8,13 @@ names them for users.
 from __future__ import annotations
 
 import enum
+import time
 from dataclasses import asdict, dataclass, field
 from typing import final
 
 import numpy as np
 
-from qpnso.control.tick import (
+from qpnso.control.flags import (
     FLAG_COST_UNDEFINED,
     FLAG_ELBOW_DROPPED,
     FLAG_ELBOW_OUTSIDE_ROM,
@@ -220,3 +221,16 @@ class ElbowState:
 def _status(bits: int) -> "Status":
     """The :class:`Status` of a kernel's status bits (``Status.OK``, without a lookup, for none)."""
     return Status(bits) if bits else Status.OK
+
+
+_NOT_FINITE_MESSAGE = "the command was not finite: joints stopped"
+
+
+def _stamped(cmd: Command, bits: int, t0: float) -> Command:
+    """A finished command (:func:`qpnso.control.tick.finish_command` done) given its status ``bits``, the stop
+    message if they say the command was not finite, and its tick time since ``t0``."""
+    if bits & FLAG_INTERNAL_ERROR and not cmd.message:
+        cmd.message = _NOT_FINITE_MESSAGE
+    cmd.status = cmd.status | _status(bits) if bits else cmd.status
+    cmd.tick_time = time.perf_counter() - t0
+    return cmd

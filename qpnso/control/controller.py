@@ -38,39 +38,30 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.compiled_cache import announce_numba_if_cold
-from qpnso.control.config import Command, ControllerConfig, ElbowState, Status, _status
-from qpnso.control.state import StateEvaluator, TickState
-from qpnso.control.tick import (
-    FLAG_INTERNAL_ERROR,
-    FLAG_INTERVAL_STALE,
-    FLAG_QP_FAILED,
-    FLAG_ROM_EMPTY,
-    LINE_OK,
+from qpnso.control.compiled import compiled_step
+from qpnso.control.config import Command, ControllerConfig, ElbowState, Status, _stamped, _status
+from qpnso.control.elbow_memory import (
     NS,
     P_MOVED_TOL,
     P_PERIOD,
-    TICK_ELBOW_DROPPED,
-    TICK_NEED_INTERVAL,
-    TICK_NOT_FINITE,
-    TICK_Q_REFUSED,
-    TICK_STATE_NOT_FINITE,
-    LineTickBuffers,
-    answer_bits,
     arm_angle_singular,
     elbow_advance,
     elbow_bounds,
     elbow_memory,
     elbow_parameters,
-    finish_command,
     interval_failed,
     interval_stale,
+    store_interval,
+)
+from qpnso.control.flags import FLAG_INTERNAL_ERROR, FLAG_INTERVAL_STALE, FLAG_QP_FAILED, FLAG_ROM_EMPTY
+from qpnso.control.state import StateEvaluator, TickState
+from qpnso.control.tick import (
+    LineTickBuffers,
+    answer_bits,
+    finish_command,
     level1_target,
     limits_status,
     pose_error,
-    qp_command,
-    qp_tick,
-    qp_tick_answer,
-    store_interval,
     velocity_bounds,
 )
 from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
@@ -81,9 +72,6 @@ from qpnso.linalg import dynamically_consistent_projection
 from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
 from qpnso.qp import HierarchicalQP, Level
-from qpnso.qp.backends import solved_vector
-from qpnso.qp.line import LINE_ANSWER_OK
-from qpnso.qp.results import level_failure
 
 if TYPE_CHECKING:
     from qpnso.control.strategies import QPStrategy
@@ -99,26 +87,12 @@ def _answer_status(tool_residual: float | None, slack: np.ndarray | None) -> Sta
     )
 
 
-_NOT_FINITE_MESSAGE = "the command was not finite: joints stopped"
-
-
-def _stamped(cmd: "Command", bits: int, t0: float) -> "Command":
-    """A finished command (:func:`qpnso.control.tick.finish_command` done) given its status ``bits``, the stop
-    message if they say the command was not finite, and its tick time since ``t0``."""
-    if bits & FLAG_INTERNAL_ERROR and not cmd.message:
-        cmd.message = _NOT_FINITE_MESSAGE
-    cmd.status = cmd.status | _status(bits) if bits else cmd.status
-    cmd.tick_time = time.perf_counter() - t0
-    return cmd
-
-
 def _norm(v: np.ndarray) -> float:
     """Euclidean norm of a small vector (cheaper than np.linalg.norm per call)."""
     return math.sqrt(float(v @ v))
 
 
 _WRIST_SIN_MIN = float(np.sin(np.radians(WRIST_CONE_DEG)))
-_ELBOW_BITS = FLAG_INTERVAL_STALE | FLAG_ROM_EMPTY
 
 
 class Controller:
@@ -415,123 +389,8 @@ class Controller:
         return state, elbow, status | elbow.status if elbow.status else status
 
     def _compiled(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float) -> Command | tuple | None:
-        """The ``qp`` strategy's tick as :func:`qpnso.control.tick.qp_tick` (the CasADi state read in place →
-        level-2 line QP, one Numba call), the back end's level-2 solve (:meth:`HierarchicalQP.line_level_raw`)
-        and :func:`qpnso.control.tick.qp_tick_answer` (checks, command, torque): the general path's answer to
-        round-off.  Returns the Command; or, when the line fast path does not apply, ``(state, elbow,
-        status)`` for the general path to go on from; or None when nothing was done (singular arm angle)."""
-        flat = self.evaluate.raw(qv, self._dq_prev, twist)
-        t1 = time.perf_counter()
-        buf = self._line
-        assert buf is not None  # the compiled tick has its buffers (_can_compile)
-        tick, t_interval = self._qp_tick(buf, qv, flat, twist, True), 0.0
-        if tick[0] == TICK_NEED_INTERVAL:  # (its time is not the QP's)
-            t_interval = time.perf_counter()
-            self._update_interval(qv, flat[:12])  # (qp_tick then flags a stale interval itself)
-            t_interval = time.perf_counter() - t_interval
-            tick = self._qp_tick(buf, qv, flat, twist, False)
-        code, ns, rom_lo, rom_hi, iv_lo, iv_hi, k, e_pos, e_rot, residual, cost, bits = tick
-        if code == TICK_NOT_FINITE or code == TICK_Q_REFUSED:
-            self._refuse_q(qv)  # raises, naming the entries or the joint
-        if code == TICK_ELBOW_DROPPED or code == TICK_STATE_NOT_FINITE:
-            return None  # the general path drops the elbow, or stops the joints
-        if code != LINE_OK:
-            elbow = ElbowState(ns, (rom_lo, rom_hi), (iv_lo, iv_hi), k, _status(bits & _ELBOW_BITS))
-            return self.evaluate.state(qv, flat.copy()), elbow, _status(bits)
-        raw = self.qp.line_level_raw(buf.H, buf.g, buf.C, buf.l, buf.u, buf.box_l, buf.box_u, buf.x0, buf.d, 1)
-        v = solved_vector(raw, buf.box_l.shape)
-        answer: tuple | None = None
-        if v is not None:
-            answer = qp_tick_answer(
-                v,
-                buf.line,
-                buf.box_l,
-                buf.box_u,
-                buf.C,
-                buf.l,
-                buf.u,
-                self.qp.settings.feasibility_tol,
-                flat,
-                self.evaluate.offsets,
-                qv,
-                dq_meas,
-                k,
-                self.config.dt,
-                self.config.joint_damping,
-                residual,
-                bits,
-                self._tau_limit,
-                self.robot.dq_max,
-                ns,
-                rom_lo,
-                rom_hi,
-            )
-        ok = answer is not None and answer[0] == LINE_ANSWER_OK
-        self.qp.count_solve(ok)
-        if ok:  # finished in qp_tick_answer (finish_command): the command as sent
-            assert answer is not None  # (ok)
-            _, dq_cmd, q_des, tau, bits = answer
-            cmd = Command(
-                dq_cmd,
-                q_des,
-                tau,
-                k,
-                ns,
-                (rom_lo, rom_hi),
-                (iv_lo, iv_hi),
-                cost,
-                Status.OK,
-                time.perf_counter() - t1 - t_interval,
-                0.0,
-                (e_pos, e_rot),
-                "",
-            )
-            return _stamped(cmd, bits, t0)
-        second = self.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
-        dq_cmd, fallback, message = self._fallback(level_failure(1, 2, second), buf.x1.copy())
-        q_des, tau = qp_command(
-            flat, self.evaluate.offsets, qv, dq_cmd, dq_meas, k, self.config.dt, self.config.joint_damping
-        )
-        cmd = Command(
-            dq_cmd,
-            q_des,
-            tau,
-            k,
-            ns,
-            (rom_lo, rom_hi),
-            (iv_lo, iv_hi),
-            cost,
-            Status.OK,
-            time.perf_counter() - t1 - t_interval,
-            0.0,
-            (e_pos, e_rot),
-            message,
-        )
-        o = self.evaluate.offsets
-        return self._finish(cmd, qv, flat[o[9] : o[10]], bits | fallback.value, t0, False)
-
-    def _qp_tick(
-        self, buf: LineTickBuffers, qv: np.ndarray, flat: np.ndarray, twist: np.ndarray, advance: bool
-    ) -> tuple:
-        """:func:`qpnso.control.tick.qp_tick` on this controller's reference, elbow memory, settings and buffers
-        (``buf``: ``self._line``)."""
-        return qp_tick(
-            qv,
-            flat,
-            self.evaluate.offsets,
-            self._limits,
-            self.ref_rotation,
-            self.ref_position,
-            twist,
-            self._elbow_memory,
-            self.ns0,
-            self._elbow_params,
-            advance,
-            self._gains,
-            self._qp_tol,
-            buf.identity,
-            *buf.outputs(),
-        )
+        """The ``qp`` strategy's compiled tick: :func:`qpnso.control.compiled.compiled_step`."""
+        return compiled_step(self, qv, twist, dq_meas, t0)
 
     # ------------------------------------------------------------- helpers
     def _check_input(self, qv: np.ndarray) -> Status:
@@ -564,7 +423,7 @@ class Controller:
 
     def _elbow(self, state: TickState) -> ElbowState:
         """Arm angle (unwrapped), continuity interval, ROM_t [E 10], [E 11] and K(ns) [E 6]
-        (:func:`qpnso.control.tick.elbow_advance`, :func:`qpnso.control.tick.elbow_bounds`).
+        (:func:`qpnso.control.elbow_memory.elbow_advance`, :func:`qpnso.control.elbow_memory.elbow_bounds`).
 
         A singular arm angle (wrist near the vertical through the shoulder, or a
         straight elbow) drops the elbow constraints for the tick.
@@ -586,7 +445,7 @@ class Controller:
     def _update_interval(self, q: np.ndarray, pose: np.ndarray) -> None:
         """Recompute the continuity interval [E 9] at ``q`` into the elbow memory; when it cannot be, the
         previous one (or, before any, the full circle) stands, marked stale
-        (:func:`qpnso.control.tick.interval_stale`)."""
+        (:func:`qpnso.control.elbow_memory.interval_stale`)."""
         try:
             interval = continuity_interval(self.robot, q)
         except QpnsoError:

@@ -17,6 +17,7 @@ import casadi as ca
 import numpy as np
 from numba import njit
 
+from qpnso.control.flags import FLAG_COST_UNDEFINED, FLAG_INTERNAL_ERROR
 from qpnso.elbow.arm_angle import arm_angle_expression, elbow_points
 from qpnso.model.codegen import FastFunction
 from qpnso.model.costs import CostModel
@@ -161,10 +162,6 @@ def state_views(flat, offsets):
     )
 
 
-COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT = 128, 2048
-"""Status bits of :func:`sanitize_state` (``qpnso.control.tick.FLAG_COST_UNDEFINED``, ``FLAG_INTERNAL_ERROR``)."""
-
-
 @njit(cache=True)
 def sanitize_state(flat, offsets):
     """Make a stacked state (:func:`qpnso.control.state.state_views`) safe to act on, in place; returns status
@@ -177,7 +174,7 @@ def sanitize_state(flat, offsets):
     for i in range(o[3], o[5]):
         if not math.isfinite(flat[i]):
             flat[o[3] : o[5]] = 0.0
-            bits |= COST_UNDEFINED_BIT
+            bits |= FLAG_COST_UNDEFINED
             break
     for i in range(o[5], o[8]):
         if not math.isfinite(flat[i]):
@@ -185,8 +182,8 @@ def sanitize_state(flat, offsets):
             break
     for i in range(o[0], o[3]):
         if not math.isfinite(flat[i]):
-            return bits | INTERNAL_ERROR_BIT
+            return bits | FLAG_INTERNAL_ERROR
     for i in range(o[8], o[10]):
         if not math.isfinite(flat[i]):
-            return bits | INTERNAL_ERROR_BIT
+            return bits | FLAG_INTERNAL_ERROR
     return bits

@@ -8,8 +8,8 @@ kernel here, and the general Python path calls these same kernels one by one:
 * :func:`velocity_bounds` — joint velocity limits with the position damper;
 * :func:`cost_step` / :func:`low_pass` — the ``qp`` strategy's saturated, filtered cost step;
 * :func:`qp_nullspace_torque` — its null-space impedance torque;
-* :func:`elbow_advance` / :func:`elbow_bounds` — the arm angle unwrapped along the run, the cached
-  continuity interval's age, ROM_t and the stiffness K(ns), on the elbow memory (:func:`elbow_memory`).
+* the elbow's memory across ticks is :mod:`qpnso.control.elbow_memory` (unwrapped arm angle, the cached
+  continuity interval's age, ROM_t and the stiffness K(ns)).
 
 For the ``qp`` strategy with the hierarchical QP's line fast path
 (:mod:`qpnso.qp.line`, module doc), :func:`qp_tick` composes them with the line
@@ -28,8 +28,26 @@ import math
 import numpy as np
 from numba import njit
 
-from qpnso.control.state import COST_UNDEFINED_BIT, INTERNAL_ERROR_BIT, sanitize_state, state_views
-from qpnso.elbow.rom import clipped_bounds, sigmoid_stiffness
+from qpnso.control.elbow_memory import (
+    NS,
+    P_MOVED_TOL,
+    P_PERIOD,
+    arm_angle_singular,
+    elbow_advance,
+    elbow_bounds,
+    interval_stale,
+)
+from qpnso.control.flags import (
+    FLAG_ELBOW_OUTSIDE_ROM,
+    FLAG_ELBOW_SLACK,
+    FLAG_INTERNAL_ERROR,
+    FLAG_INTERVAL_STALE,
+    FLAG_Q_OUT_OF_LIMITS,
+    FLAG_ROM_EMPTY,
+    FLAG_TOOL_LIMITED,
+    FLAG_TORQUE_SATURATED,
+)
+from qpnso.control.state import sanitize_state, state_views
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, matvec, nullspace_part
 from qpnso.qp.backends import qp_data_finite
 from qpnso.qp.line import LINE_ANSWER_OK, LINE_OK, checked_line_answer, least_norm_point, line_qp_arrays, task_line
@@ -58,17 +76,6 @@ TICK_NEED_INTERVAL = 6
 """A code of :func:`qp_tick`: the elbow memory advanced and the continuity interval must be recomputed
 (:func:`store_interval`), then :func:`qp_tick` called again with ``advance`` False."""
 
-# Status bits (qpnso.control.config.Status names them)
-FLAG_QP_FAILED, FLAG_ELBOW_DROPPED, FLAG_ELBOW_SLACK, FLAG_ROM_EMPTY = 1, 2, 4, 8
-FLAG_Q_OUT_OF_LIMITS, FLAG_INTERVAL_STALE, FLAG_TOOL_LIMITED = 16, 32, 64
-FLAG_COST_UNDEFINED, FLAG_TORQUE_SATURATED, FLAG_QP_FALLBACK, FLAG_ELBOW_OUTSIDE_ROM = (
-    COST_UNDEFINED_BIT,
-    256,
-    512,
-    1024,
-)
-FLAG_INTERNAL_ERROR = INTERNAL_ERROR_BIT
-FLAG_QP_DEADLINE = 4096
 
 TOOL_RESIDUAL_REPORTED = 1e-6
 """m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
@@ -78,10 +85,6 @@ ELBOW_SLACK_REPORTED = 1e-3
 row held by the cost is always violated by about (cost force)/(2·slack_weight) ≈ 1e-5."""
 ELBOW_ROM_TOL = 1e-6
 """rad: an arm angle farther than this outside ROM_t is flagged ``ELBOW_OUTSIDE_ROM``."""
-TOOL_MOVED_TOL = 1e-6
-"""m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
-cached continuity interval (its ends move by ~1e-6 rad at most, against a safety margin of degrees)."""
-TWO_PI = 2.0 * math.pi
 
 
 @njit(cache=True)
@@ -143,15 +146,6 @@ def limits_status(q, low, high):
         if q[i] < low[i] or q[i] > high[i]:
             code = 1
     return code
-
-
-@njit(cache=True)
-def max_abs_difference(a, b):
-    """``max |a − b|`` over the entries of two vectors of the same length."""
-    worst = 0.0
-    for i in range(a.shape[0]):
-        worst = max(worst, abs(a[i] - b[i]))
-    return worst
 
 
 @njit(cache=True)
@@ -252,107 +246,6 @@ def qp_nullspace_torque(dq_cmd, dq_meas, stiffness, dt, damping):
     return stiffness * dt * dq_cmd + damping * (dq_cmd - dq_meas)
 
 
-# ------------------------------------------------------------------ elbow
-# The elbow's state across ticks, one array (elbow_memory) that the kernels read and advance:
-NS, IV_LO, IV_HI, IV_FULL, IV_KNOWN, IV_AGE, IV_POSE = 0, 1, 2, 3, 4, 5, 6
-"""Indices: the last arm angle (rad, unwrapped along the run); the cached continuity interval (rad,
-around that angle), full circle (1/0), known (1; 2: known but its renewal failed, stale; 0: none), its age
-(ticks), and from IV_POSE the 12 entries
-of the tool pose (:attr:`qpnso.control.state.TickState.pose`) it was computed at."""
-
-
-def elbow_memory(ns: float) -> np.ndarray:
-    """A fresh elbow memory at arm angle ``ns`` (rad): no interval known (computed at the first tick)."""
-    memory = np.zeros(IV_POSE + 12)
-    memory[NS] = ns
-    memory[IV_AGE] = math.inf
-    return memory
-
-
-def interval_failed(memory: np.ndarray) -> None:
-    """The continuity interval could not be computed: the one cached (or, before any, the full circle)
-    stands, marked stale (``IV_KNOWN`` 2), and the next attempt comes ``period`` ticks later (a failing
-    attempt costs about 1 ms: one per tick stalled every tick near a singularity)."""
-    if memory[IV_KNOWN] != 0.0:
-        memory[IV_KNOWN] = 2.0
-    memory[IV_AGE] = 0.0
-
-
-@njit(cache=True)
-def interval_stale(memory):
-    """Whether the elbow memory holds no continuity interval, or one whose renewal failed
-    (:func:`interval_failed`): ``INTERVAL_STALE`` on every tick until a renewal succeeds."""
-    return memory[IV_KNOWN] != 1.0
-
-
-def store_interval(memory: np.ndarray, lo: float, hi: float, full_circle: bool, pose: np.ndarray) -> None:
-    """Cache a continuity interval (rad) computed at the tool pose ``pose`` (12,); its age restarts."""
-    memory[IV_LO], memory[IV_HI], memory[IV_FULL], memory[IV_KNOWN], memory[IV_AGE] = lo, hi, full_circle, 1.0, 0.0
-    memory[IV_POSE:] = pose
-
-
-P_HALF_WIDTH, P_MARGIN, P_K_MIN, P_K_MAX, P_ALPHA, P_D, P_WRIST_SIN_MIN, P_OFFSET_MIN, P_PERIOD, P_MOVED_TOL = range(10)
-"""Indices of :func:`elbow_parameters`."""
-
-
-def elbow_parameters(
-    half_width: float,
-    margin: float,
-    k_min: float,
-    k_max: float,
-    alpha: float,
-    d: float,
-    wrist_sin_min: float,
-    elbow_offset_min: float,
-    period: int,
-) -> np.ndarray:
-    """The elbow kernels' constants in one array (indices ``P_*``): ROM half width Δns and safety
-    margin d_sg (rad), stiffness K_min, K_max (N·m/rad), α (1/rad), d (rad) [E 6], the singularity
-    thresholds (sine, m), the interval's update period (ticks) and :data:`TOOL_MOVED_TOL`."""
-    return np.array(
-        [half_width, margin, k_min, k_max, alpha, d, wrist_sin_min, elbow_offset_min, period, TOOL_MOVED_TOL]
-    )
-
-
-@njit(cache=True)
-def arm_angle_singular(wrist_sin, elbow_offset, params):
-    """Whether the arm angle is undefined this tick (wrist near the vertical through the shoulder,
-    or a straight elbow): the elbow constraints are dropped."""
-    return wrist_sin < params[P_WRIST_SIN_MIN] or elbow_offset < params[P_OFFSET_MIN]
-
-
-@njit(cache=True)
-def elbow_advance(ns_wrapped, pose, memory, period, moved_tol):
-    """One tick of the elbow memory: the arm angle unwrapped along the run (rad), the interval aged.
-    Returns ``(ns, recompute)``: whether the continuity interval must be recomputed (none known and the
-    last attempt ``period`` ticks old, or the tool moved by more than ``moved_tol`` and the interval is
-    ``period`` ticks old)."""
-    ns = memory[NS] + (ns_wrapped - memory[NS] + math.pi) % TWO_PI - math.pi
-    memory[NS] = ns
-    memory[IV_AGE] += 1.0
-    if memory[IV_KNOWN] == 0.0:
-        return ns, memory[IV_AGE] >= period
-    fresh = memory[IV_AGE] < period or max_abs_difference(pose, memory[IV_POSE:]) <= moved_tol
-    return ns, not fresh
-
-
-@njit(cache=True)
-def elbow_bounds(ns, memory, ns0, params):
-    """``(rom_lo, rom_hi, empty, iv_lo, iv_hi, K)`` at arm angle ``ns`` (rad): the cached continuity
-    interval moved by whole turns to be expressed around ``ns`` (none known, or a full circle: the
-    circle centred on ``ns``) [E 9], ROM_t clipped to it [E 10], [E 11] (:func:`qpnso.elbow.rom.clipped_bounds`)
-    and the stiffness K(ns) [E 6] (N·m/rad)."""
-    full = memory[IV_KNOWN] == 0.0 or memory[IV_FULL] != 0.0
-    if full:
-        lo, hi = ns - math.pi, ns + math.pi
-    else:
-        k = round((ns - 0.5 * (memory[IV_LO] + memory[IV_HI])) / TWO_PI)
-        lo, hi = memory[IV_LO] + TWO_PI * k, memory[IV_HI] + TWO_PI * k
-    rom_lo, rom_hi, empty = clipped_bounds(ns0, params[P_HALF_WIDTH], lo, hi, full, params[P_MARGIN])
-    k = sigmoid_stiffness(ns, ns0, params[P_K_MIN], params[P_K_MAX], params[P_ALPHA], params[P_D])
-    return rom_lo, rom_hi, empty, lo, hi, k
-
-
 class LineTickBuffers:
     """The arrays :func:`qp_tick` writes, allocated once per controller (nothing is boxed
     per tick): ``step`` the cost step's filter state (rad/s, read and advanced), ``line`` (3, n)
@@ -421,15 +314,15 @@ def qp_tick(
     ``flat`` the stacked CasADi state at ``q`` (:class:`qpnso.control.state.StateEvaluator`, cut at
     ``offsets``); ``limits`` (7, n) the rows q_low, q_high (``q`` as checked), q_min, q_max (rad),
     dq_max (rad/s), the accepted q_low, q_high (rad: beyond, :data:`TICK_Q_REFUSED`); ``memory``/``elbow``
-    of :func:`elbow_memory`/:func:`elbow_parameters`; ``ns0`` the ROM centre (rad); ``advance`` False
-    after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
+    of :mod:`qpnso.control.elbow_memory` (its ``elbow_memory`` and ``elbow_parameters``); ``ns0`` the ROM
+    centre (rad); ``advance`` False after :data:`TICK_NEED_INTERVAL` (the memory has advanced).
     ``gains`` = (pose gain K_p 1/s, joint-limit gain 1/s, cost gain, null-space speed max rad/s, filter α,
     elbow gain 1/s, slack scale 1/√(2ρ), recovery speed rad/s, pose correction's speed caps m/s and rad/s,
     ½dt s); ``qp_tol`` = (rank_tol, damping threshold, regularisation μ);
     ``identity`` (n, n) level 2's Hessian.
 
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`), the arm angle's singularity
-    (:data:`TICK_ELBOW_DROPPED`), the elbow (:func:`elbow_advance`, :func:`elbow_bounds`), level 1's
+    (:data:`TICK_ELBOW_DROPPED`), the elbow (:mod:`qpnso.control.elbow_memory`), level 1's
     error (:func:`pose_error`; :data:`LINE_NO_POSE` near π), its line of exact solutions within the
     joint bounds (:func:`qpnso.qp.line.task_line`) and least-norm point ``x1`` (the safe fallback), the
     filtered cost step and the elbow row, and the level-2 line QP (:func:`qpnso.qp.line.line_qp_arrays`)

@@ -179,3 +179,26 @@ def test_summarize_run():
     assert s["tick_time_p99_us"] == pytest.approx(200.0)
     assert all(isinstance(v, float) for v in s.values())
     assert set(summarize_run({"t": t})) == {"duration_s", "ticks"}
+
+
+def test_smoothness_of_a_sampled_cubic_is_exact() -> None:
+    """p(t) = t³ along x, N samples dt apart: the third difference is exactly 6·dt³, L = T³, T = (N−1)·dt, so
+    S = √(T⁵/L² · 36·(N−3)·dt) = 6·√((N−3)/(N−1)) to round-off; few samples make an off-by-one in the
+    duration or the jerk count visible (a 1/N change)."""
+    for n, dt in ((11, 0.1), (7, 0.25)):
+        t = dt * np.arange(n)
+        p = np.zeros((n, 3))
+        p[:, 0] = t**3
+        assert smoothness(t, p) == pytest.approx(6.0 * np.sqrt((n - 3) / (n - 1)), rel=1e-12)
+
+
+def test_work_per_metre_integrates_a_linear_power_exactly() -> None:
+    """F = (2, 0, 0) N, v = (1 + 3t, 0, 0) m/s on uneven times: the power 2 + 6t is linear, so the trapezoidal
+    rule is exact: ∫₀^T = 2T + 3T²; the path (a 4 m segment, sampled unevenly) gives L = 4 m."""
+    t = np.array([0.0, 0.1, 0.35, 0.4, 0.9, 1.0])
+    force = np.tile([2.0, 0.0, 0.0], (t.size, 1))
+    velocity = np.zeros((t.size, 3))
+    velocity[:, 0] = 1.0 + 3.0 * t
+    p = np.zeros((t.size, 3))
+    p[:, 1] = 4.0 * t**2
+    assert user_work_per_metre(force, velocity, t, p) == pytest.approx((2.0 + 3.0) / 4.0, rel=1e-13)

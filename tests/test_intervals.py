@@ -166,3 +166,33 @@ def test_panda_numerical_interval_ends_are_limit_crossings() -> None:
                 limit = robot.q_max[cause.joint] if cause.bound == "max" else robot.q_min[cause.joint]
                 assert abs(q_end[cause.joint] - limit) < 1e-9
                 assert np.all(q_end >= robot.q_min - 1e-9) and np.all(q_end <= robot.q_max + 1e-9)
+
+
+@pytest.mark.parametrize("joint", [1, 5])
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_a_singular_cut_ends_the_interval_and_is_named(robot: Robot, joint: int, side: float) -> None:
+    """A pose whose self-motion takes joint 2 (or 6) through 0 at a known arm angle: from 0.3 rad on either
+    side, the continuity interval ends exactly there and names the singular cut (it once named a limit of
+    joint 3, 80° away from it, from one side).  Checked by brute force on the closed-form IK (the branch
+    held): every sample inside is within the limits, the cut joint goes to 0 at the end, and just past it
+    joints 1 and 3 (5 and 7) jump by about π."""
+    q_cut = np.radians([10, 40, -10, -70, 20, 50, 0])
+    q_cut[joint] = 0.0
+    pose = robot.tool_pose(q_cut)
+    ns_cut = E.arm_angle(robot, q_cut)
+    near = q_cut.copy()
+    near[joint] = side * np.radians(5)  # picks the branch on that side of the cut
+    b = S.branch(robot, near)
+    start = S.ik(robot, pose, ns_cut + side * 0.3, b).reshape(-1)
+    assert np.all((start >= robot.q_min) & (start <= robot.q_max))
+    interval = I.continuity_interval(robot, start)
+    end, cause = (interval.lo, interval.lo_cause) if side > 0 else (interval.hi, interval.hi_cause)
+    assert cause == I.Cause("singular", joint)
+    assert end == pytest.approx(ns_cut, abs=1e-9)
+    inside = S.ik(robot, pose, np.linspace(ns_cut + side * 0.3, ns_cut + side * 1e-6, 200), b)
+    assert np.all((inside >= robot.q_min) & (inside <= robot.q_max))
+    assert abs(inside[-1, joint]) < 1e-4
+    before, after = (S.ik(robot, pose, ns_cut + s * 1e-7, b).reshape(-1) for s in (side, -side))
+    jump = np.abs(np.angle(np.exp(1j * (after - before))))
+    partners = (0, 2) if joint == 1 else (4, 6)
+    assert np.all(jump[list(partners)] > 3.0)

@@ -299,11 +299,24 @@ def _closed_form_interval(
                 lo = min(lo, (0.0 if ahead < 1e-9 else TWO_PI - ahead, i + j * n, t.cause))
     for k, x in _singular_cuts(den):  # joints 2 and 6 through 0: singular cuts end the interval on both sides
         cut = Cause("singular", k)
-        hi = min(hi, ((x - ns0) % TWO_PI, 2 * n + k, cut))
-        lo = min(lo, ((ns0 - x) % TWO_PI, 2 * n + k, cut))
+        hi = _cut_or_crossing(hi, ((x - ns0) % TWO_PI, 2 * n + k, cut))
+        lo = _cut_or_crossing(lo, ((ns0 - x) % TWO_PI, 2 * n + k, cut))
     if math.isinf(hi[0]) and math.isinf(lo[0]):
         return Interval(ns0 - math.pi, ns0 + math.pi, True, "closed_form")
     return Interval(ns0 - lo[0], ns0 + hi[0], False, "closed_form", lo[2], hi[2])
+
+
+CUT_TIE = 1e-9
+"""rad: a singular cut this close to the nearest limit crossing (or nearer) ends the interval and names it."""
+
+
+def _cut_or_crossing(
+    crossing: tuple[float, int, Cause | None], cut: tuple[float, int, Cause]
+) -> tuple[float, int, Cause | None]:
+    """The end of one side: the singular cut ``cut`` unless a limit crossing is nearer by more than
+    :data:`CUT_TIE`.  At a cut, joints 1 and 3 (5 and 7) jump by π, and their closed form shows a "crossing"
+    at the cut itself: without the tie, it named a limit of joint 3 that the joint was 80° away from."""
+    return cut if cut[0] <= crossing[0] + CUT_TIE else crossing
 
 
 # --------------------------------------------------------------- public API

@@ -416,3 +416,43 @@ def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
     pose = robot.tool_pose(Q0)
     ctrl.step(Q0, tool_pose=pose)
     assert [len(k.signatures) for k in kernels] == before
+
+
+def _kernel_signatures() -> dict[str, int]:
+    """Signature counts of every Numba kernel of every qpnso module (walked, not listed by hand)."""
+    import importlib
+    import pkgutil
+
+    import numba
+
+    out = {}
+    for info in pkgutil.walk_packages(qpnso.__path__, "qpnso."):
+        try:
+            module = importlib.import_module(info.name)
+        except ImportError:  # an optional dependency (extras) missing
+            continue
+        for name, value in vars(module).items():
+            if isinstance(value, numba.core.dispatcher.Dispatcher) and value.py_func.__module__ == module.__name__:
+                out[f"{module.__name__}.{name}"] = len(value.signatures)
+    return out
+
+
+@pytest.mark.parametrize("strategy", ["qp", "damped"])
+def test_no_kernel_of_any_module_loads_in_a_tick_after_the_constructor(robot, strategy: str) -> None:
+    """After the constructor, no tick loads or compiles a kernel of any qpnso module: the compiled tick, the
+    general path, a dropped elbow (q = 0, the wrist over the shoulder; its K(ns) was once loaded in the first
+    such tick, 85 ms when the cache had to be rebuilt), a joint just outside its limit, a tool pose."""
+    _kernel_signatures()  # every module imported first
+    ctrl = Controller(robot, ControllerConfig(strategy=strategy))
+    before = _kernel_signatures()
+    ctrl.reset(Q0)
+    ctrl.step(Q0, tool_twist=[0.05, 0.0, 0.0, 0.0, 0.0, 0.1])
+    outside = Q0.copy()
+    outside[0] = robot.q_max[0] + 0.01
+    ctrl.step(outside)
+    ctrl.step(Q0, tool_pose=robot.tool_pose(Q0))
+    ctrl.reset(np.zeros(7))
+    cmd = ctrl.step(np.zeros(7))
+    assert cmd.status & Status.ELBOW_DROPPED
+    after = _kernel_signatures()
+    assert {k: (before.get(k), n) for k, n in after.items() if n != before.get(k)} == {}

@@ -175,6 +175,7 @@ class Controller:
         control tick."""
         announce_numba_if_cold()  # one line on stderr when the kernels compile now (empty cache)
         self.qp.warm_up()  # the general cascade's kernels (the dry ticks below may not reach it)
+        stiffness(0.0, 0.0, self.elbow_config)  # the dropped elbow's K(ns), a kernel called from Python (_elbow)
         q = self.robot.sample_configuration()
         compiled = self.compiled_tick
         for path in {compiled, False}:

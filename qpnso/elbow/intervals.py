@@ -55,7 +55,7 @@ from qpnso.elbow.srs import (
     self_motion,
     srs_geometry,
 )
-from qpnso.errors import SingularityError
+from qpnso.errors import ModelError, SingularityError
 from qpnso.model.robot import Robot
 
 TWO_PI = 2.0 * math.pi
@@ -330,6 +330,12 @@ def feasible_intervals(
     end arcs.  With ``per_joint=True`` also returns ``{k: Ψ_k}`` [E 7] for
     k = 0…6 (0-based; limits only, no singular cuts except for joints 2 and 6 themselves).
     """
+    wide = _limits_beyond_pi(robot)
+    if wide is not None:
+        raise ModelError(
+            f"closed-form arcs need joint limits inside ±π; joint {wide + 1} has "
+            f"[{robot.q_min[wide]:.6g}, {robot.q_max[wide]:.6g}] rad (use continuity_interval, numerical)"
+        )
     sm = self_motion(robot, as_pose(pose), branch_)
     everything = _arcs(sm, robot.q_min, robot.q_max, _ALL_JOINTS)
     psi = [(lo, hi) for lo, hi, _, _ in everything]
@@ -339,15 +345,23 @@ def feasible_intervals(
     return psi, per
 
 
+def _limits_beyond_pi(robot: Robot) -> int | None:
+    """The first joint (0-based) whose limits reach ±π or beyond, else None.  The closed form reads a limit
+    through its sine and cosine (or as an angle of atan2 in (−π, π]): such a limit aliases (limits of ±7 rad
+    bounded the LWR4+'s interval at ±0.24 rad) or never binds consistently (at exactly ±π)."""
+    wide = np.flatnonzero(~((robot.q_min > -math.pi) & (robot.q_max < math.pi)))
+    return int(wide[0]) if wide.size else None
+
+
 def continuity_interval(robot: Robot, q: object, options: "NumericalOptions | None" = None) -> Interval:
     """The continuity interval [E 9] holding the arm angle of ``q`` (rad, unwrapped).
 
-    Closed form for S-R-S arms, else :func:`numerical_interval`.  Raises
+    Closed form for S-R-S arms whose joint limits are inside ±π, else :func:`numerical_interval`.  Raises
     JointLimitError if ``q`` is outside its limits and SingularityError if the
     arm angle or branch of ``q`` is undefined.
     """
     qv = robot.check_q(q)
-    if not is_srs(robot):
+    if not is_srs(robot) or _limits_beyond_pi(robot) is not None:
         return numerical_interval(robot, qv, options)
     pin.framesForwardKinematics(robot.model, robot.data, qv)
     ns = _checked(_status_after_fk(robot))

@@ -459,11 +459,6 @@ def _pass_down(lo: np.ndarray, value: np.ndarray, hi: np.ndarray, tol: float) ->
     return np.where(value - lo < tol, value, lo), np.where(hi - value < tol, value, hi)
 
 
-def _violation(lo: np.ndarray, value: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Per-row distance of ``value`` outside ``[lo, hi]`` (0 inside)."""
-    return np.maximum(np.maximum(lo - value, value - hi), 0.0)
-
-
 @njit(cache=True)
 def level_answer(v, Z, identity, has_box, box_l, box_u, C, l, u, slack_start, n_slack, x_prev):
     """A level QP's answer ``v = [z; σ]`` checked: ``x = x_prev + Z z`` (``identity``: ``Z`` is I), the

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 os.environ.setdefault("QPNSO_COMPILE", "off")
@@ -31,3 +32,19 @@ def robots() -> dict[str, qpnso.Robot]:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+def reference_arm_angle(robot: qpnso.Robot, q: np.ndarray) -> float:
+    """[E 2]–[E 4] literally, with explicitly normalised u_sin, u_cos, from Pinocchio placements."""
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    pts = qpnso.elbow_points(robot)
+    ps = data.oMi[pts.shoulder_joint].act(np.array(pts.shoulder_offset))
+    pe = data.oMi[pts.elbow_joint].act(np.array(pts.elbow_offset))
+    pw = data.oMi[pts.wrist_joint].act(np.array(pts.wrist_offset))
+    p_sw, p_se = pw - ps, pe - ps
+    u_sin = np.cross([0, 0, 1.0], p_sw)
+    u_sin /= np.linalg.norm(u_sin)
+    u_cos = np.cross(p_sw, u_sin)
+    u_cos /= np.linalg.norm(u_cos)
+    return float(np.arctan2(p_se @ u_sin, p_se @ u_cos))

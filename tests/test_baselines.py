@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import reference_arm_angle
 
 import qpnso
 from qpnso.control.config import ControllerConfig, ElbowState, Status
@@ -26,21 +27,6 @@ def controller(robot: qpnso.Robot, strategy: str, **settings) -> Controller:
     ctrl = Controller(robot, ControllerConfig(strategy=strategy, **settings))
     ctrl.reset(Q1)
     return ctrl
-
-
-def arm_angle_fk(robot: qpnso.Robot, q: np.ndarray) -> float:
-    """The arm angle [E 2]-[E 4] from Pinocchio's joint placements (shoulder, elbow and wrist centres at the
-    origins of joints 2, 4 and 6), apart from the controller's CasADi expression:
-    ``ns = atan2(p_se·u_sin, p_se·u_cos)``, ``u_sin = z0 × p_sw / |·|``, ``u_cos = p_sw × u_sin / |·|``."""
-    data = robot.model.createData()
-    pin.forwardKinematics(robot.model, data, q)
-    s, e, w = (data.oMi[j].translation for j in (2, 4, 6))
-    p_se, p_sw = e - s, w - s
-    u_sin = np.cross([0.0, 0.0, 1.0], p_sw)
-    u_sin /= np.linalg.norm(u_sin)
-    u_cos = np.cross(p_sw, u_sin)
-    u_cos /= np.linalg.norm(u_cos)
-    return float(np.arctan2(p_se @ u_sin, p_se @ u_cos))
 
 
 def test_damped_posture_dissipates(robot) -> None:
@@ -69,7 +55,7 @@ def test_elbow_up_turns_the_arm_angle_towards_its_target(robot) -> None:
         ctrl = controller(robot, "elbow-up", elbow_up_angle_deg=target_deg)
         state = ctrl.evaluate(Q1)
         tau = ctrl.strategy.nullspace_torque(state, ctrl._elbow(state), np.zeros(7), np.zeros(7))
-        ns, ns_after = arm_angle_fk(robot, Q1), arm_angle_fk(robot, Q1 + 1e-4 * tau / np.linalg.norm(tau))
+        ns, ns_after = reference_arm_angle(robot, Q1), reference_arm_angle(robot, Q1 + 1e-4 * tau / np.linalg.norm(tau))
         assert np.sign(ns_after - ns) == np.sign(np.radians(target_deg) - ns)
 
 
@@ -106,11 +92,11 @@ def test_rom_modulation_is_silent_inside_the_rom_and_restoring_outside(robot) ->
         )
         outside = ElbowState(state.arm_angle, rom, (-np.pi, np.pi), 10.0, Status.OK)
         tau = ctrl.strategy.nullspace_torque(state, outside, np.zeros(7), np.zeros(7))
-        ns_after = arm_angle_fk(robot, Q1 + 1e-4 * tau / np.linalg.norm(tau))
-        assert np.sign(ns_after - arm_angle_fk(robot, Q1)) == -side  # back towards ROM_t
+        ns_after = reference_arm_angle(robot, Q1 + 1e-4 * tau / np.linalg.norm(tau))
+        assert np.sign(ns_after - reference_arm_angle(robot, Q1)) == -side  # back towards ROM_t
         # the set-point is the closed-form IK at the ROM's near end: K·(q_des − q) with ns(q_des) that end
         q_des = Q1 + tau / outside.stiffness
-        assert arm_angle_fk(robot, q_des) == pytest.approx(rom[1] if side > 0 else rom[0], abs=1e-9)
+        assert reference_arm_angle(robot, q_des) == pytest.approx(rom[1] if side > 0 else rom[0], abs=1e-9)
 
 
 def test_rom_modulation_brings_an_elbow_outside_its_rom_back_in_closed_loop(robot) -> None:
@@ -118,7 +104,7 @@ def test_rom_modulation_brings_an_elbow_outside_its_rom_back_in_closed_loop(robo
     arm (q ← q + dt·q̇) following the ``rom`` strategy returns inside ROM_t, the excursion never grows, and the
     held tool stays put (Pinocchio's forward kinematics)."""
     ctrl = Controller(robot, ControllerConfig(strategy="rom"))
-    ns_start = arm_angle_fk(robot, Q1)
+    ns_start = reference_arm_angle(robot, Q1)
     ctrl.reset(Q1, ns0=ns_start + np.radians(60))
     data = robot.model.createData()
     pin.framesForwardKinematics(robot.model, data, Q1)
@@ -132,7 +118,7 @@ def test_rom_modulation_brings_an_elbow_outside_its_rom_back_in_closed_loop(robo
     assert all(b <= a + 1e-9 for a, b in zip(excursion, excursion[1:]))
     assert excursion[-1] < 1e-3
     lo = ns_start + np.radians(10)  # ROM_t's lower end, which the arm angle (by Pinocchio) has reached
-    assert arm_angle_fk(robot, q) >= lo - 1e-3
+    assert reference_arm_angle(robot, q) >= lo - 1e-3
     pin.framesForwardKinematics(robot.model, data, q)
     assert np.linalg.norm(data.oMf[robot.tool_frame_id].translation - tool0) < 1e-5
 

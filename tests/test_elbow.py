@@ -7,6 +7,7 @@ import itertools
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import reference_arm_angle
 
 from qpnso.elbow import arm_angle as E
 from qpnso.elbow import srs as S
@@ -25,22 +26,6 @@ def robot(request) -> Robot:
 def _regular_qs(robot: Robot, rng: np.random.Generator, n: int) -> list[np.ndarray]:
     qs = (robot.random_q(rng, 0.05) for _ in range(4 * n))
     return [q for q in qs if E.arm_angle_status(robot, q).ok][:n]
-
-
-def _reference_arm_angle(robot: Robot, q: np.ndarray) -> float:
-    """[E 2]–[E 4] literally, with explicitly normalised u_sin, u_cos, from Pinocchio placements."""
-    data = robot.model.createData()
-    pin.forwardKinematics(robot.model, data, q)
-    pts = E.elbow_points(robot)
-    ps = data.oMi[pts.shoulder_joint].act(np.array(pts.shoulder_offset))
-    pe = data.oMi[pts.elbow_joint].act(np.array(pts.elbow_offset))
-    pw = data.oMi[pts.wrist_joint].act(np.array(pts.wrist_offset))
-    p_sw, p_se = pw - ps, pe - ps
-    u_sin = np.cross([0, 0, 1.0], p_sw)
-    u_sin /= np.linalg.norm(u_sin)
-    u_cos = np.cross(p_sw, u_sin)
-    u_cos /= np.linalg.norm(u_cos)
-    return float(np.arctan2(p_se @ u_sin, p_se @ u_cos))
 
 
 def test_geometry_read_from_model(robot: Robot) -> None:
@@ -67,7 +52,7 @@ def test_non_srs_models_are_refused(robot: Robot) -> None:
 
 def test_arm_angle_matches_literal_formula(robot: Robot, rng) -> None:
     for q in _regular_qs(robot, rng, 50):
-        assert E.arm_angle(robot, q) == pytest.approx(_reference_arm_angle(robot, q), abs=1e-12)
+        assert E.arm_angle(robot, q) == pytest.approx(reference_arm_angle(robot, q), abs=1e-12)
 
 
 def test_zero_is_elbow_up(robot: Robot, rng) -> None:

@@ -91,27 +91,13 @@ def compiled_step(
     if ok:  # finished in qp_tick_answer (finish_command): the command as sent
         assert answer is not None  # (ok)
         _, dq_cmd, q_des, tau, bits = answer
-        cmd = Command(
-            dq_cmd,
-            q_des,
-            tau,
-            k,
-            ns,
-            (rom_lo, rom_hi),
-            (iv_lo, iv_hi),
-            cost,
-            Status.OK,
-            time.perf_counter() - t1 - t_interval,
-            0.0,
-            (e_pos, e_rot),
-            "",
+        message = ""
+    else:  # the answer refused: level 1's least-norm point, then every tick's finishing step
+        second = ctrl.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
+        dq_cmd, fallback, message = ctrl._fallback(level_failure(1, 2, second), buf.x1.copy())
+        q_des, tau = qp_command(
+            flat, ctrl.evaluate.offsets, qv, dq_cmd, dq_meas, k, ctrl.config.dt, ctrl.config.joint_damping
         )
-        return _stamped(cmd, bits, t0)
-    second = ctrl.qp.line_level_result(raw, buf.d, buf.x0, buf.box_l, buf.box_u, buf.C, buf.l, buf.u, 1)
-    dq_cmd, fallback, message = ctrl._fallback(level_failure(1, 2, second), buf.x1.copy())
-    q_des, tau = qp_command(
-        flat, ctrl.evaluate.offsets, qv, dq_cmd, dq_meas, k, ctrl.config.dt, ctrl.config.joint_damping
-    )
     cmd = Command(
         dq_cmd,
         q_des,
@@ -127,6 +113,8 @@ def compiled_step(
         (e_pos, e_rot),
         message,
     )
+    if ok:
+        return _stamped(cmd, bits, t0)
     o = ctrl.evaluate.offsets
     return ctrl._finish(cmd, qv, flat[o[9] : o[10]], bits | fallback.value, t0, False)
 

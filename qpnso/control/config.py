@@ -10,7 +10,6 @@ from __future__ import annotations
 import enum
 import time
 from dataclasses import asdict, dataclass, field
-from typing import final
 
 import numpy as np
 
@@ -109,7 +108,6 @@ class ControllerConfig:
     # lower level that would overrun it does not start (Status.QP_DEADLINE, tool held); None: no budget, answers
     # independent of timing (HierarchicalQP.solve's time_budget; README "Real-time use" gives the measurement)
     compile: str | None = None  # CasADi evaluation: background|sync|off (codegen.py)
-    compiled_tick: bool = True  # qp strategy: the tick as one Numba kernel when the line fast path applies (tick.py)
 
     def __post_init__(self) -> None:
         """Types first (:func:`qpnso.settings.check`: ``weights``/``qp_settings`` may be dicts),
@@ -179,7 +177,6 @@ class ControllerConfig:
         )
 
 
-@final  # (the controller tells a Command from its other tick outputs by its exact type)
 @dataclass
 class Command:
     """The controller's output for one tick (rad, rad/s, N·m, s; world frame)."""

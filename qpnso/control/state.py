@@ -23,9 +23,33 @@ from qpnso.model.codegen import FastFunction
 from qpnso.model.costs import CostModel
 
 
+def state_dtype(n: int) -> np.dtype:
+    """The record type of the arm's state at one tick, ``n`` joints, laid out as the CasADi function of
+    :class:`StateEvaluator` writes it (so the record is a view of its output buffer).  Frames: world;
+    tool point; units rad, m, s; matrices row-major."""
+    f8 = np.float64
+    return np.dtype(
+        [
+            ("R", f8, (3, 3)),  # tool rotation, world ← tool
+            ("p", f8, 3),  # tool point (m, world)
+            ("J", f8, (6, n)),  # tool Jacobian, world-aligned at the tool point, linear rows first
+            ("cost", f8),  # weighted total [M 18]
+            ("cost_gradient", f8, n),  # per rad
+            ("arm_angle", f8),  # ns [E 2], rad, wrapped to (−π, π]
+            ("arm_angle_gradient", f8, n),  # ∂ns/∂q
+            ("wrist_sin", f8),  # |p_sw × z0| / |p_sw|: sine of the wrist's angle to the vertical
+            ("elbow_offset", f8),  # m: distance of the elbow centre from the shoulder–wrist line
+            ("A", f8, (n, n)),  # A(q), kg·m² (Pinocchio's crba)
+            ("g", f8, n),  # g(q), N·m (Pinocchio's computeGeneralizedGravity)
+            ("drift", f8, 6),  # J̇(q, q̇)q̇ at the predicted q̇ (m/s², rad/s²; world-aligned, tool point)
+        ]
+    )
+
+
 @dataclass
 class TickState:
-    """The arm at one tick.  Frames: world; tool point; units rad, m, s."""
+    """The arm at one tick, as Python reads it (the strategies written in Python, tests).  Frames: world;
+    tool point; units rad, m, s.  The fields of :func:`state_dtype` under these names."""
 
     q: np.ndarray  # (nq,) rad
     tool_rotation: np.ndarray  # (3, 3) world ← tool
@@ -37,19 +61,39 @@ class TickState:
     arm_angle_gradient: np.ndarray  # (nq,) ∂ns/∂q
     wrist_sin: float  # |p_sw × z0| / |p_sw|: sine of the wrist's angle to the vertical
     elbow_offset: float  # distance (m) of the elbow centre from the shoulder–wrist line
-    pose: np.ndarray  # (12,) rotation entries (column-major) then position (m): for cheap comparisons
     mass_matrix: np.ndarray  # (nq, nq) A(q), kg·m² (Pinocchio's crba)
     gravity: np.ndarray  # (nq,) g(q), N·m (Pinocchio's computeGeneralizedGravity)
     tool_drift: np.ndarray  # (6,) J̇(q, q̇)q̇ at the predicted q̇ (m/s², rad/s²; world-aligned, tool point)
     flags: int = 0  # status bits of sanitize_state: what was not finite and made safe
 
+    @classmethod
+    def of(cls, q: np.ndarray, state: np.ndarray, flags: int = 0) -> "TickState":
+        """The fields of a state record (1-element array), as views of it."""
+        s = state[0]
+        return cls(
+            q,
+            s["R"],
+            s["p"],
+            s["J"],
+            float(s["cost"]),
+            s["cost_gradient"],
+            float(s["arm_angle"]),
+            s["arm_angle_gradient"],
+            float(s["wrist_sin"]),
+            float(s["elbow_offset"]),
+            s["A"],
+            s["g"],
+            s["drift"],
+            flags,
+        )
+
 
 class StateEvaluator:
-    """Evaluates :class:`TickState` from ``q`` with one CasADi call.
+    """Evaluates the arm's state from ``q`` with one CasADi call.
 
-    The function has a single output, every quantity stacked in one vector (``R``, ``J`` and ``A``
-    column-major) at the offsets :attr:`offsets`; :func:`state_views` cuts it into the state's
-    fields, views of the one array a tick copies (or, for the compiled tick, reads in place).
+    The function has a single output, every quantity stacked in one vector in the layout of
+    :func:`state_dtype` (matrices row-major); :meth:`record` returns it as that record, a view of
+    the function's own buffer (the tick reads it in place), ``__call__`` a :class:`TickState` copy.
     """
 
     def __init__(self, cost: CostModel, compile: str | None = None) -> None:
@@ -61,56 +105,49 @@ class StateEvaluator:
         J = sym.frame_jacobian(robot.tool_frame_id)
         dq, twist = ca.SX.sym("dq", robot.nq), ca.SX.sym("twist", 6)
         parts = [
-            tool.R,
+            tool.R.T,  # (transposed: ca.vec is column-major, the record row-major)
             tool.p,
-            J,
+            J.T,
             total,
             ca.gradient(total, sym.q),
             ns,
             ca.gradient(ns, sym.q),
             measures,
-            sym.mass_matrix(),
+            sym.mass_matrix().T,
             sym.gravity_torque(),
             tool_drift(sym.q, J, predicted_velocity(J, dq, twist)),
         ]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
+        self.dtype = state_dtype(robot.nq)
+        assert stacked.numel() * 8 == self.dtype.itemsize  # the record is the output, field for field
         self._zero_velocity = np.zeros(robot.nq)
         self._fn = FastFunction(
             ca.Function(f"tick_{robot.name}", [ca.vertcat(sym.q, dq, twist)], [stacked], ["q_dq_twist"], ["state"]),
             compile,
         )  # one input: one copy a tick
         self._zero_twist = np.zeros(6)
-        self.offsets = np.cumsum([0] + [part.numel() for part in parts])
-        """Start of each part in the stacked vector, and its length at the end (in the order of
-        :func:`state_views`)."""
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until compiled code is used (benchmarks call this)."""
         return self._fn.wait(timeout)
 
     def __call__(self, q: np.ndarray, dq: np.ndarray | None = None, twist: np.ndarray | None = None) -> TickState:
-        """State at ``q`` (rad; assumed validated by the caller); the drift along the velocity predicted
-        from the previous command ``dq`` (rad/s; None: 0) and this tick's tool ``twist`` (m/s, rad/s; None:
-        ``dq``'s own, so the drift is along ``dq`` itself) — :func:`predicted_velocity`."""
+        """State at ``q`` (rad; assumed validated by the caller), made safe (:func:`sanitize_state`), a copy;
+        the drift along the velocity predicted from the previous command ``dq`` (rad/s; None: 0) and this
+        tick's tool ``twist`` (m/s, rad/s; None: ``dq``'s own, so the drift is along ``dq`` itself) —
+        :func:`predicted_velocity`."""
         dq = self._zero_velocity if dq is None else dq
         if twist is None:
             twist = self._zero_twist if dq is self._zero_velocity else self.robot.jacobian(q) @ dq
-        return self.state(q, self._fn.evaluate_in_place(q, dq, twist).copy())
+        state = self.record(q, dq, twist).copy()
+        return TickState.of(q, state, sanitize_state(state[0]))
 
-    def raw(self, q: np.ndarray, dq: np.ndarray, twist: np.ndarray) -> np.ndarray:
-        """The stacked state at ``q`` (rad), the previous command ``dq`` (rad/s) and the tool ``twist``
-        (validated by the caller) in the evaluator's own buffer: read it before the next call, which
-        overwrites it (the compiled tick's in-place read)."""
-        return self._fn.evaluate_in_place(q, dq, twist)
-
-    def state(self, q: np.ndarray, flat: np.ndarray) -> TickState:
-        """The :class:`TickState` of a stacked state ``flat`` (views of it) at ``q``, made safe first
-        (:func:`sanitize_state`, in place: an undefined cost is 0, an undefined arm angle
-        singular; :attr:`TickState.flags` says so)."""
-        flags = sanitize_state(flat, self.offsets)
-        R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, A, g, drift = state_views(flat, self.offsets)
-        return TickState(q, R, p, J, c, dc, ns, dns, wrist_sin, elbow_offset, flat[:12], A, g, drift, flags)
+    def record(self, q: np.ndarray, dq: np.ndarray, twist: np.ndarray) -> np.ndarray:
+        """The state at ``q`` (rad), the previous command ``dq`` (rad/s) and the tool ``twist`` (validated by
+        the caller) as a :func:`state_dtype` record (1-element array) in the evaluator's own buffer, not yet
+        made safe: read it before the next call, which overwrites it."""
+        return self._fn.evaluate_in_place(q, dq, twist).view(self.dtype)
 
 
 PREDICTION_DAMPING = 1e-2
@@ -138,52 +175,35 @@ def tool_drift(q: ca.SX, J: ca.SX, velocity: ca.SX) -> ca.SX:
 
 
 @njit(cache=True)
-def state_views(flat, offsets):
-    """The stacked state cut at ``offsets`` (:attr:`StateEvaluator.offsets`): ``(R, p, J, c, ∇c, ns, ∇ns,
-    wrist_sin, elbow_offset, A, g, J̇q̇)``, arrays as views (column-major parts: F-ordered), scalars as floats."""
-    o = offsets
-    n = o[5] - o[4]
-    R = flat[o[0] : o[1]].reshape((3, 3)).T
-    J = flat[o[2] : o[3]].reshape((n, 6)).T
-    A = flat[o[8] : o[9]].reshape((n, n)).T
-    return (
-        R,
-        flat[o[1] : o[2]],
-        J,
-        flat[o[3]],
-        flat[o[4] : o[5]],
-        flat[o[5]],
-        flat[o[6] : o[7]],
-        flat[o[7]],
-        flat[o[7] + 1],
-        A,
-        flat[o[9] : o[10]],
-        flat[o[10] : o[11]],
-    )
+def sanitize_state(s):
+    """Make a state record ``s`` (:func:`state_dtype`) safe to act on, in place; returns status bits.  A
+    cost or cost gradient that is not finite (the tool Jacobian singular: Λ undefined) is set to 0
+    (``COST_UNDEFINED``: no cost step this tick); an arm angle or gradient or singularity measure that is
+    not finite marks the arm angle singular (all set to 0: the elbow rows are dropped).  Anything else not
+    finite (pose, J, A, g, the drift) is ``INTERNAL_ERROR``: the caller must not act on it."""
+    bits = 0
+    if not (math.isfinite(s.cost) and all_finite(s.cost_gradient)):
+        s.cost = 0.0
+        s.cost_gradient[:] = 0.0
+        bits |= FLAG_COST_UNDEFINED
+    if not (
+        math.isfinite(s.arm_angle)
+        and all_finite(s.arm_angle_gradient)
+        and math.isfinite(s.wrist_sin)
+        and math.isfinite(s.elbow_offset)
+    ):
+        s.arm_angle, s.wrist_sin, s.elbow_offset = 0.0, 0.0, 0.0  # wrist sine 0: singular
+        s.arm_angle_gradient[:] = 0.0
+    finite = all_finite(s.R.ravel()) and all_finite(s.p) and all_finite(s.J.ravel())
+    if not (finite and all_finite(s.A.ravel()) and all_finite(s.g) and all_finite(s.drift)):
+        return bits | FLAG_INTERNAL_ERROR
+    return bits
 
 
 @njit(cache=True)
-def sanitize_state(flat, offsets):
-    """Make a stacked state (:func:`qpnso.control.state.state_views`) safe to act on, in place; returns status
-    bits.  A cost or cost gradient that is not finite (the tool Jacobian singular: Λ undefined) is set
-    to 0 (``COST_UNDEFINED``: no cost step this tick); an arm angle or gradient that is not finite marks
-    the arm angle singular (its sine measure set to 0: the elbow rows are dropped).  Anything else not
-    finite (pose, J, A, g) is ``INTERNAL_ERROR``: the caller must not act on it."""
-    o = offsets
-    bits = 0
-    for i in range(o[3], o[5]):
-        if not math.isfinite(flat[i]):
-            flat[o[3] : o[5]] = 0.0
-            bits |= FLAG_COST_UNDEFINED
-            break
-    for i in range(o[5], o[8]):
-        if not math.isfinite(flat[i]):
-            flat[o[5] : o[8]] = 0.0  # wrist sine 0: singular
-            break
-    for i in range(o[0], o[3]):
-        if not math.isfinite(flat[i]):
-            return bits | FLAG_INTERNAL_ERROR
-    for i in range(o[8], o[10]):
-        if not math.isfinite(flat[i]):
-            return bits | FLAG_INTERNAL_ERROR
-    return bits
+def all_finite(v):
+    """Whether every entry of the vector ``v`` is finite."""
+    for x in v:
+        if not math.isfinite(x):
+            return False
+    return True

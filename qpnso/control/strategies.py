@@ -1,15 +1,18 @@
 """Redundancy strategies: qpnso's QP and the papers' baselines (docs/method.md §7–8).
 
-A strategy says two things each tick, given the arm's state and the elbow's:
+Every tick a strategy fills in what is its own (:meth:`Strategy.fill`), on the tick's records
+(:class:`qpnso.control.controller.TickRecords`): level 2 of the problem record (what the arm does in the
+tool's null space; :mod:`qpnso.qp.problem`) and the command record's null-space torque law, which
+:func:`qpnso.control.tick.finish_tick` projects into the dynamically consistent null space and adds to
+gravity compensation.  The ``qp`` strategy does both in one kernel (:func:`qpnso.control.tick.qp_level2`);
+the papers' baselines, written in Python, say them as
 
-* ``level2(state, elbow)``: the second level of the hierarchical QP (what the
-  arm does in the tool's null space), or None for "nothing";
-* ``nullspace_torque(state, elbow, dq_cmd, dq_meas)``: the joint torque it
-  would apply (N·m), which the controller projects into the dynamically
-  consistent null space and adds to gravity compensation.
+* ``level2(state, elbow)``: a :class:`~qpnso.qp.Level` (task, quadratic, linear term) or None for "nothing";
+* ``nullspace_torque(state, elbow, dq_meas)``: the joint torque they would apply (N·m), which does not
+  depend on the command.
 
-Level 1 (the tool) and the joint bounds are the controller's, the same for
-every strategy, so the strategies differ only where the papers differ.
+Level 1 (the tool), the joint bounds and the solver are the same for every strategy, so the strategies
+differ only where the papers differ.
 """
 
 from __future__ import annotations
@@ -18,14 +21,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from qpnso.control.tick import cost_step, elbow_row_bounds, low_pass, qp_nullspace_torque
+from qpnso.control.state import TickState
+from qpnso.control.tick import low_pass, qp_level2
 from qpnso.errors import ConfigError, QpnsoError
 from qpnso.qp import Level
+from qpnso.qp.problem import set_level2
 
 if TYPE_CHECKING:
     from qpnso.control.config import ControllerConfig, ElbowState
-    from qpnso.control.controller import Controller
-    from qpnso.control.state import TickState
+    from qpnso.control.controller import Controller, TickRecords
 
 
 class Strategy:
@@ -54,16 +58,23 @@ class Strategy:
         self._target = low_pass(previous, v, filter_alpha(self.cfg.posture_filter_time, self.cfg.dt))
         return self._target.copy()
 
+    def fill(self, tick: "TickRecords") -> None:
+        """Level 2 into ``tick.problem`` (:func:`qpnso.qp.problem.set_level2` of :meth:`level2`) and the
+        torque law into ``tick.command``: :meth:`nullspace_torque`, as a constant ``spring``."""
+        state, elbow = TickState.of(tick.q, tick.state), tick.elbow()
+        set_level2(tick.problem, self.level2(state, elbow))
+        c = tick.command[0]
+        c["spring"] = self.nullspace_torque(state, elbow, tick.dq_meas)
+        c["stiffness_dt"], c["damping"], c["damp_cmd"] = 0.0, 0.0, 0.0
+
     def level2(self, state: "TickState", elbow: "ElbowState") -> Level | None:
         return None
 
-    def stiffness(self, elbow: "ElbowState") -> float:
-        """The null-space stiffness this strategy applies (N·m/rad): none for DP."""
+    def stiffness(self, elbow_stiffness: float) -> float:
+        """The null-space stiffness this strategy applies (N·m/rad) given the elbow's K(ns): none for DP."""
         return 0.0
 
-    def nullspace_torque(
-        self, state: "TickState", elbow: "ElbowState", dq_cmd: np.ndarray, dq_meas: np.ndarray
-    ) -> np.ndarray:
+    def nullspace_torque(self, state: "TickState", elbow: "ElbowState", dq_meas: np.ndarray) -> np.ndarray:
         """DP: τ = −D q̇ with D = ``joint_damping`` (10 N·m·s/rad, the elbow paper's)."""
         return -self.cfg.joint_damping * dq_meas
 
@@ -81,7 +92,7 @@ class FixedPosture(Strategy):
 
     name = "fixed"
 
-    def stiffness(self, elbow) -> float:
+    def stiffness(self, elbow_stiffness: float) -> float:
         return self.cfg.posture_stiffness
 
     def reset(self, q0: np.ndarray, state: "TickState") -> None:
@@ -92,7 +103,7 @@ class FixedPosture(Strategy):
     def level2(self, state: "TickState", elbow: "ElbowState") -> Level:
         return Level(A=self._identity, b=self.posture_target(self.cfg.posture_gain * (self.q_ref - state.q)))
 
-    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+    def nullspace_torque(self, state, elbow, dq_meas) -> np.ndarray:
         return self.cfg.posture_stiffness * (self.q_ref - state.q) - self.cfg.joint_damping * dq_meas
 
 
@@ -129,7 +140,7 @@ class ElbowUp(Strategy):
 
     name = "elbow-up"
 
-    def stiffness(self, elbow) -> float:
+    def stiffness(self, elbow_stiffness: float) -> float:
         return self.cfg.posture_stiffness
 
     def _delta(self, elbow: "ElbowState") -> float:
@@ -141,7 +152,7 @@ class ElbowUp(Strategy):
         rate = self.cfg.posture_gain * self._delta(elbow)  # rad/s of the arm angle
         return Level(A=row, b=self.posture_target(np.array([rate])))
 
-    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+    def nullspace_torque(self, state, elbow, dq_meas) -> np.ndarray:
         return self.cfg.posture_stiffness * arm_angle_step(state, self._delta(elbow)) - self.cfg.joint_damping * dq_meas
 
 
@@ -164,7 +175,7 @@ class Gradient(Strategy):
     def level2(self, state, elbow) -> Level:
         return Level(A=self._identity, b=self.posture_target(self.desired_velocity(state)))
 
-    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+    def nullspace_torque(self, state, elbow, dq_meas) -> np.ndarray:
         return -self.cfg.gradient_kd * (dq_meas - self.desired_velocity(state))
 
 
@@ -179,8 +190,8 @@ class RomModulation(Strategy):
 
     name = "rom"
 
-    def stiffness(self, elbow) -> float:
-        return elbow.stiffness
+    def stiffness(self, elbow_stiffness: float) -> float:
+        return elbow_stiffness
 
     def _setpoint_step(self, state: "TickState", elbow: "ElbowState") -> np.ndarray | None:
         lo, hi = elbow.rom
@@ -213,7 +224,7 @@ class RomModulation(Strategy):
             return None
         return Level(A=self._identity, b=target)
 
-    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
+    def nullspace_torque(self, state, elbow, dq_meas) -> np.ndarray:
         step = self._setpoint_step(state, elbow)
         spring = 0.0 if step is None else elbow.stiffness * step
         return spring - self.cfg.joint_damping * dq_meas
@@ -232,37 +243,12 @@ class QPStrategy(Strategy):
 
     name = "qp"
 
-    def stiffness(self, elbow) -> float:
-        return elbow.stiffness
+    def stiffness(self, elbow_stiffness: float) -> float:
+        return elbow_stiffness
 
-    def __init__(self, controller: "Controller") -> None:
-        super().__init__(controller)
-        self.filtered_step = np.zeros(controller.robot.nq)
-        """State of the cost step's low-pass (rad/s), updated in place (the compiled tick shares it)."""
-
-    def reset(self, q0: np.ndarray, state: "TickState") -> None:
-        super().reset(q0, state)
-        self.filtered_step[:] = 0.0  # from rest
-
-    @property
-    def filter_alpha(self) -> float:
-        """Per-tick factor of the cost step's low-pass (:func:`filter_alpha` of ``cost_filter_time``)."""
-        return filter_alpha(self.cfg.cost_filter_time, self.cfg.dt)
-
-    def level2(self, state, elbow) -> Level:
-        cfg = self.cfg
-        step = cost_step(state.jacobian, state.cost_gradient, cfg.cost_gain, cfg.nullspace_speed_max)
-        self.filtered_step[:] = low_pass(self.filtered_step, step, self.filter_alpha)
-        step = self.filtered_step.copy()
-        if elbow.dropped:
-            return Level(H=self._identity, g=step)
-        lo, hi = elbow.rom
-        row = state.arm_angle_gradient.reshape(1, -1)
-        l, u = elbow_row_bounds(elbow.ns, lo, hi, cfg.elbow_gain, cfg.recovery_speed)
-        return Level(H=self._identity, g=step, C=row, l=l, u=u, slack_weight=cfg.slack_weight)
-
-    def nullspace_torque(self, state, elbow, dq_cmd, dq_meas) -> np.ndarray:
-        return qp_nullspace_torque(dq_cmd, dq_meas, elbow.stiffness, self.cfg.dt, self.cfg.joint_damping)
+    def fill(self, tick: "TickRecords") -> None:
+        """Level 2 and the impedance in one kernel: :func:`qpnso.control.tick.qp_level2`."""
+        qp_level2(tick.state, tick.params, tick.memory, tick.report, tick.problem, tick.command)
 
 
 _STRATEGIES = {cls.name: cls for cls in (Damped, FixedPosture, ElbowUp, Gradient, RomModulation, QPStrategy)}

@@ -143,15 +143,14 @@ def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None =
     strategies = strategies or STRATEGIES
     q0 = robot.sample_configuration()
     runs, notes = {}, {}
-    variants = [(name, True) for name in strategies] + ([("qp", False)] if "qp" in strategies else [])
-    for name, compiled in variants:  # qp twice: compiled tick, and the general path for comparison
-        ctrl = Controller(robot, ControllerConfig(strategy=name, compiled_tick=compiled))
+    for name in strategies:
+        ctrl = Controller(robot, ControllerConfig(strategy=name))
         ctrl.cost.wait_compiled()
         ctrl.evaluate.wait_compiled()
         ctrl.reset(q0)
-        row = f"step, strategy {name}" + ("" if compiled else ", general path")
+        row = f"step, strategy {name}"
         runs[row] = held_tool_ticks(ctrl, q0)
-        notes[row] = "tool held" + (", compiled tick" if ctrl.compiled_tick else "")
+        notes[row] = "tool held"
     pink = pink_ticks(robot, q0)
     if pink is not None:
         runs["Pink solve_ik (FrameTask + PostureTask)"], notes["Pink solve_ik (FrameTask + PostureTask)"] = pink

@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit
 
 from qpnso.linalg import dot, least_norm_line, matvec
+from qpnso.qp.backends import qp_data_finite
 from qpnso.qp.cascade import _NO_VECTOR, LevelQP, _no_rows, level_answer
 from qpnso.qp.levels import _LevelData
 from qpnso.qp.settings import QPSettings
@@ -72,7 +73,8 @@ def line_segment(x0, d, lb, ub):
 
 LINE_OK = 0
 LINE_SINGULAR = 1  # a singular value may be below the damping threshold: no line (damped cascade)
-LINE_CUT = 2  # the bounds miss the line of exact solutions (a bound binds the task: the QP decides)
+LINE_CUT = 2  # the bounds or a hard row miss the line of exact solutions (they bind the task: the QP decides)
+LINE_NOT_FINITE = 3  # the line's level-2 QP is not finite (a huge finite twist can overflow): not solved
 
 
 @njit(cache=True)
@@ -86,6 +88,25 @@ def task_line(A, b, lb, ub, rank_tol, damping):
         return LINE_SINGULAR, x0, d, 0.0, 0.0
     t_lo, t_hi = line_segment(x0, d, lb, ub)
     return (LINE_OK if t_lo <= t_hi else LINE_CUT), x0, d, t_lo, t_hi
+
+
+@njit(cache=True)
+def fold_rows(x0, d, t_lo, t_hi, C, l, u):
+    """``[t_lo, t_hi]`` narrowed so that the hard rows ``l ≤ C(x0 + t·d) ≤ u`` hold on the segment:
+    each row is an interval on ``t``, as a bound is (:func:`line_segment`); a row that ``d`` does not
+    move (|C d| ≤ 1e-12·‖C_i‖) must hold at ``x0``.  Empty: ``t_lo > t_hi``."""
+    for i in range(C.shape[0]):
+        cd, cx, size = 0.0, 0.0, 0.0
+        for j in range(d.shape[0]):
+            cd += C[i, j] * d[j]
+            cx += C[i, j] * x0[j]
+            size = max(size, abs(C[i, j]))
+        if abs(cd) > 1e-12 * size:
+            a, c = (l[i] - cx) / cd, (u[i] - cx) / cd
+            t_lo, t_hi = max(t_lo, min(a, c)), min(t_hi, max(a, c))
+        elif cx < l[i] or cx > u[i]:
+            return 1.0, 0.0
+    return t_lo, t_hi
 
 
 @njit(cache=True)
@@ -188,3 +209,109 @@ def checked_line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack, tol):
         return LINE_ANSWER_NOT_FINITE, x0.copy(), math.inf, np.zeros(n_slack)
     x, worst, slack = level_answer(v, d.reshape(d.shape[0], 1), False, True, box_l, box_u, C, l, u, 0, n_slack, x0)
     return (LINE_ANSWER_OK if worst <= tol else LINE_ANSWER_VIOLATED), x, worst, slack
+
+
+def line_dtype(n: int, soft_rows: int) -> np.dtype:
+    """The record of a problem's line (:func:`line_setup`): ``x0``, ``d``, ``[t_lo, t_hi]`` the segment of
+    level 1's exact solutions (rad/s), ``x1`` its least-norm point; and level 2's line QP in
+    ``v = [t; σ]`` (``nv`` = 1 + its soft rows, ``p`` rows; the arrays' top-left parts), the form
+    ProxSuite gets."""
+    f8, i8, m = np.float64, np.int64, max(soft_rows, 1)
+    return np.dtype(
+        [
+            ("x0", f8, n),
+            ("d", f8, n),
+            ("x1", f8, n),
+            ("t_lo", f8),
+            ("t_hi", f8),
+            ("nv", i8),
+            ("p", i8),
+            ("H", f8, (m + 1, m + 1)),
+            ("g", f8, m + 1),
+            ("C", f8, (m, m + 1)),
+            ("l", f8, m),
+            ("u", f8, m),
+            ("box_l", f8, m + 1),
+            ("box_u", f8, m + 1),
+        ]
+    )
+
+
+@njit(cache=True)
+def line_setup(problem, tol, line):
+    """Level 1 of a tick's problem (:mod:`qpnso.qp.problem`) in closed form, and level 2's QP on its line,
+    into ``line`` (:func:`line_dtype`); ``tol`` the solver's tolerances (:meth:`QPSettings.record`).
+
+    Level 1's exact solutions within the bounds (:func:`task_line`) and the hard rows (:func:`fold_rows`),
+    their least-norm point ``x1``; level 2 (task, quadratic, linear term, soft rows with the slack
+    scaled by 1/√(2ρ)) restricted to the line (:func:`line_qp_arrays`).  Returns :data:`LINE_OK`, or why
+    the line does not apply (:data:`LINE_SINGULAR`, :data:`LINE_CUT`) or its QP is not finite
+    (:data:`LINE_NOT_FINITE`)."""
+    pb, L, T = problem[0], line[0], tol[0]
+    code, x0, d, t_lo, t_hi = task_line(pb.A1, pb.b1, pb.lb, pb.ub, T.rank_tol, T.damping_threshold)
+    if code != LINE_OK:
+        return code
+    nh = pb.n_hard
+    t_lo, t_hi = fold_rows(x0, d, t_lo, t_hi, pb.hard_C[:nh], pb.hard_l[:nh], pb.hard_u[:nh])
+    if t_lo > t_hi:
+        return LINE_CUT
+    L.x0[:], L.d[:], L.t_lo, L.t_hi = x0, d, t_lo, t_hi
+    L.x1[:] = least_norm_point(x0, d, t_lo, t_hi)
+    L.nv, L.p = 0, 0
+    if not pb.has_level2:
+        return LINE_OK
+    n, m, p = d.shape[0], pb.m2, pb.n_soft
+    H, g, C, lo, hi, box_l, box_u, _ = line_qp_arrays(
+        d,
+        x0,
+        t_lo,
+        t_hi,
+        pb.A2[:m],
+        pb.b2[:m],
+        pb.H2[: n if pb.use_H2 else 0],
+        pb.g2[: n if pb.use_g2 else 0],
+        pb.soft_C[:p],
+        pb.soft_l[:p],
+        pb.soft_u[:p],
+        p,
+        1.0 / math.sqrt(2.0 * pb.slack_weight) if p else 0.0,
+        T.regularization,
+        T.rank_tol,
+        T.damping_threshold,
+    )
+    if not qp_data_finite(H, g, C, lo, hi, box_l, box_u):
+        return LINE_NOT_FINITE
+    nv = p + 1
+    L.nv, L.p = nv, p
+    L.H[:nv, :nv], L.g[:nv], L.C[:p, :nv], L.l[:p], L.u[:p] = H, g, C, lo, hi
+    L.box_l[:nv], L.box_u[:nv] = box_l, box_u
+    return LINE_OK
+
+
+@njit(cache=True)
+def line_answer(v, problem, line, tol, solution):
+    """The back end's answer ``v = [t; σ]`` to :func:`line_setup`'s QP judged
+    (:func:`checked_line_answer`) and, if accepted, written into ``solution``
+    (:func:`qpnso.qp.problem.solution_dtype`: ``x``, the slack, level 1's residual at ``x1``); an empty ``v``:
+    no level 2, ``x = x1``.  Returns the :func:`checked_line_answer` code (``solution.violation``: the
+    worst violation of the box or a hard row when refused)."""
+    pb, L, S = problem[0], line[0], solution[0]
+    nv, p = L.nv, L.p
+    S.x1[:] = L.x1
+    r = matvec(pb.A1, L.x1) - pb.b1
+    S.tool_residual = math.sqrt(dot(r, r))
+    S.slack_max = -1.0
+    S.out_of_time = 0
+    if nv == 0:
+        S.x[:], S.outcome = L.x1, 0
+        return LINE_ANSWER_OK
+    code, x, worst, slack = checked_line_answer(
+        v, L.d, L.x0, L.box_l[:nv], L.box_u[:nv], L.C[:p, :nv], L.l[:p], L.u[:p], p, tol[0].feasibility_tol
+    )
+    if code != LINE_ANSWER_OK:
+        S.violation = worst
+        return code
+    S.x[:], S.outcome = x, 0
+    if p:
+        S.slack_max = slack.max()
+    return code

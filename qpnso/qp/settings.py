@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 __all__ = ["QPSettings"]
 
 NATIVE_BACKEND = "proxsuite"
@@ -82,3 +84,23 @@ class QPSettings:
         from qpnso.settings import from_dict
 
         return from_dict(cls, values, where)
+
+
+TOLERANCE_DTYPE = np.dtype(
+    [
+        ("rank_tol", np.float64),
+        ("damping_threshold", np.float64),
+        ("regularization", np.float64),
+        ("feasibility_tol", np.float64),
+    ]
+)
+"""The tolerances the line fast path's kernels read (:func:`qpnso.qp.line.line_setup`), by name."""
+
+
+def tolerance_record(settings: QPSettings) -> np.ndarray:
+    """``settings``' tolerances as a :data:`TOLERANCE_DTYPE` record (1-element array; a ``None``
+    regularisation is 0: the solver resolves it before)."""
+    return np.array(
+        [(settings.rank_tol, settings.damping_threshold, settings.regularization or 0.0, settings.feasibility_tol)],
+        dtype=TOLERANCE_DTYPE,
+    )

@@ -36,15 +36,24 @@ from qpnso.qp.levels import Level, _LevelData, _trusted_level, _validate_bounds,
 from qpnso.qp.line import (
     _OWNED_0,
     LINE_ANSWER_NOT_FINITE,
+    LINE_ANSWER_OK,
     LINE_ANSWER_VIOLATED,
+    LINE_CUT,
+    LINE_NOT_FINITE,
+    LINE_OK,
+    LINE_SINGULAR,
     _Line,
     _line_level_qp,
     _task_line,
     checked_line_answer,
     least_norm_point,
+    line_answer,
+    line_dtype,
+    line_setup,
 )
+from qpnso.qp.problem import SOLVED, STOPPED, TOOL_HELD, problem_levels
 from qpnso.qp.results import HQPResult, HQPStats, LevelResult, LevelStatus, level_failure
-from qpnso.qp.settings import NATIVE_BACKEND, QPSettings
+from qpnso.qp.settings import NATIVE_BACKEND, QPSettings, tolerance_record
 
 __all__ = ["HierarchicalQP"]
 
@@ -73,6 +82,9 @@ class HierarchicalQP:
         self.backend = backend
         self.stats = HQPStats()
         self._backend = _make_backend(backend, self.settings, self.stats)
+        self._tol = tolerance_record(self.settings)
+        self._line: np.ndarray | None = None  # line_setup's record (made for the first problem's shape)
+        self._line_views: dict[tuple[int, int], tuple] = {}
 
     def solve(
         self,
@@ -214,16 +226,17 @@ class HierarchicalQP:
         level = data[1]
         qp = _line_level_qp(level, line, self.settings)
         assert qp.box_l is not None and qp.box_u is not None  # the line's box on t
-        second = self.solve_line_level(
-            qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, line.x0, line.direction, qp.n_slack, qp
+        raw = finite_data_raw(qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u) or self._line_raw(
+            qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, qp
         )
+        second = self._line_result(raw, qp, line)
         if second.ok:
             assert second.x is not None  # a solved level has its x
             second.residual = _residual(level, second.x)
         second.solve_time_s = time.perf_counter() - t2
         return [first, second]
 
-    def solve_line_level(
+    def _line_raw(
         self,
         H: np.ndarray,
         g: np.ndarray,
@@ -232,82 +245,109 @@ class HierarchicalQP:
         u: np.ndarray,
         box_l: np.ndarray,
         box_u: np.ndarray,
-        x0: np.ndarray,
-        direction: np.ndarray,
-        n_slack: int,
-        qp: LevelQP | None = None,
-    ) -> LevelResult:
-        """Level 2 of the line fast path from the arrays of :func:`line_qp_arrays` (``v = [t; σ]``,
-        ``x = x0 + t·direction``, rad/s): :meth:`line_level_raw`, then :meth:`line_level_result`
-        (``residual`` is left to the caller).  The controller's compiled tick (:mod:`qpnso.control.tick`)
-        calls the two parts itself and counts its ticks with :meth:`count_solve`."""
-        raw = finite_data_raw(H, g, C, l, u, box_l, box_u) or self.line_level_raw(
-            H, g, C, l, u, box_l, box_u, x0, direction, n_slack, qp
-        )
-        return self.line_level_result(raw, direction, x0, box_l, box_u, C, l, u, n_slack)
-
-    def line_level_raw(
-        self,
-        H: np.ndarray,
-        g: np.ndarray,
-        C: np.ndarray,
-        l: np.ndarray,
-        u: np.ndarray,
-        box_l: np.ndarray,
-        box_u: np.ndarray,
-        x0: np.ndarray,
-        direction: np.ndarray,
-        n_slack: int,
         qp: LevelQP | None = None,
     ) -> _Raw:
-        """The back end's answer to the line's level 2, on its persistent level-2 object, unchecked."""
+        """The back end's answer to a line's level 2 (``v = [t; σ]``) on its persistent level-2 object,
+        unchecked; ``qp`` the same QP as a :class:`LevelQP` for a back end without a native box."""
         if isinstance(self._backend, _ProxSuiteBackend) and self.settings.box_constraints:
             return self._backend.solve_arrays(1, H, g, C, l, u, box_l, box_u)
         if qp is None:
-            qp = LevelQP(H, g, C, l, u, box_l, box_u, x0, direction[:, None], _OWNED_0, None, n_slack, 0, 0)
+            qp = LevelQP(H, g, C, l, u, box_l, box_u, _NO_VECTOR, _NO_BASIS, _OWNED_0, None, C.shape[0], 0, 0)  # (a back end
+            # reads H, g, the rows and the box only)
         return self._backend.solve(1, qp)
 
-    def line_level_result(
-        self,
-        raw: _Raw,
-        direction: np.ndarray,
-        x0: np.ndarray,
-        box_l: np.ndarray,
-        box_u: np.ndarray,
-        C: np.ndarray,
-        l: np.ndarray,
-        u: np.ndarray,
-        n_slack: int,
-    ) -> LevelResult:
+    def _line_result(self, raw: _Raw, qp: LevelQP, line: _Line) -> LevelResult:
         """A raw line answer judged (:func:`checked_line_answer`: box on ``t`` and hard rows within
         ``feasibility_tol``) with the soft rows' slack."""
         if raw.status is not LevelStatus.SOLVED:
             return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
-        code = LINE_ANSWER_NOT_FINITE
-        v = solved_vector(raw, box_l.shape)
+        assert qp.box_l is not None and qp.box_u is not None  # the line's box on t
+        code, worst = LINE_ANSWER_NOT_FINITE, math.inf
+        v = solved_vector(raw, qp.g.shape)
         if v is not None:
             code, x, worst, slack = checked_line_answer(
-                v, direction, x0, box_l, box_u, C, l, u, n_slack, self.settings.feasibility_tol
+                v, line.direction, line.x0, qp.box_l, qp.box_u, qp.C, qp.l, qp.u, qp.n_slack, self.settings.feasibility_tol
             )
-        if code == LINE_ANSWER_NOT_FINITE:
-            return LevelResult(
-                LevelStatus.INACCURATE,
-                iterations=raw.iterations,
-                message=f"{raw.message}: non-finite or mis-shaped solution",
-            )
-        if code == LINE_ANSWER_VIOLATED:
-            return LevelResult(
-                LevelStatus.INACCURATE,
-                iterations=raw.iterations,
-                message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}",
-            )
+        if code != LINE_ANSWER_OK:
+            return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations, message=_refusal(raw, code, worst))
         return LevelResult(
-            LevelStatus.SOLVED, x=x, slack=slack if n_slack else None, iterations=raw.iterations, message=raw.message
+            LevelStatus.SOLVED, x=x, slack=slack if qp.n_slack else None, iterations=raw.iterations, message=raw.message
         )
 
-    def count_solve(self, ok: bool) -> None:
-        """Count one cascade in ``stats`` (:meth:`solve` does; so does a caller that solves the
-        line's level 2 itself through :meth:`line_level_raw`, the controller's compiled tick)."""
+    def solve_problem(self, problem: np.ndarray, solution: np.ndarray, time_budget: float | None = None) -> str:
+        """Solve a control tick's problem record (:mod:`qpnso.qp.problem`) into ``solution``; returns ""
+        or, when a level failed, why (as :attr:`HQPResult.status` words it).
+
+        The line fast path (:func:`qpnso.qp.line.line_setup`) when level 1's exact solutions within the
+        bounds and hard rows form a segment, level 2 then on ProxSuite's persistent object; else the
+        general cascade on :func:`qpnso.qp.problem.problem_levels` (with ``time_budget``, :meth:`solve`).
+        A failed level 2 leaves level 1's least-norm answer in ``solution.x`` (``TOOL_HELD``); a failed
+        level 1 leaves zero (``STOPPED``)."""
+        line = self._line_record(problem)
+        code = line_setup(problem, self._tol, line) if self.settings.line_fast_path else LINE_SINGULAR
+        if code == LINE_SINGULAR or code == LINE_CUT:
+            return self._solve_problem_levels(problem, solution, time_budget)
+        L = line[0]
+        nv = int(L["nv"])
+        if code == LINE_NOT_FINITE:
+            raw = _Raw(None, LevelStatus.SOLVER_ERROR, 0, "non-finite QP data (NaN or inf in the problem)")
+        elif nv:
+            raw = self._line_raw(*self._line_arrays(line, nv, int(L["p"])))
+        else:
+            raw = _Raw(_NO_VECTOR, LevelStatus.SOLVED, 0, "")
+        v = solved_vector(raw, (nv,)) if code == LINE_OK else None
+        answer = line_answer(v, problem, line, self._tol, solution) if v is not None else LINE_ANSWER_NOT_FINITE
+        ok = answer == LINE_ANSWER_OK
+        self._count(ok)
+        if ok:
+            return ""
+        S = solution[0]
+        S["x"], S["x1"], S["outcome"], S["out_of_time"] = L["x1"], L["x1"], TOOL_HELD, 0
+        status = raw.status if raw.status is not LevelStatus.SOLVED else LevelStatus.INACCURATE
+        result = LevelResult(status, message=_refusal(raw, answer, float(S["violation"])))
+        return level_failure(1, 2, result)
+
+    def _line_record(self, problem: np.ndarray) -> np.ndarray:
+        """The line record for problems of this one's shape (made once: its views go to ProxSuite)."""
+        soft = problem.dtype["soft_l"].shape[0]
+        if self._line is None or self._line.dtype["l"].shape[0] != soft:
+            self._line = np.zeros(1, line_dtype(self.n, soft))
+            self._line_views = {}
+        return self._line
+
+    def _line_arrays(self, line: np.ndarray, nv: int, p: int) -> tuple:
+        """``H, g, C, l, u, box_l, box_u`` of the line's level-2 QP: views of ``line`` of the QP's shape
+        (made once per shape)."""
+        views = self._line_views.get((nv, p))
+        if views is None:
+            L = line[0]
+            views = self._line_views[(nv, p)] = (
+                L["H"][:nv, :nv],
+                L["g"][:nv],
+                L["C"][:p, :nv],
+                L["l"][:p],
+                L["u"][:p],
+                L["box_l"][:nv],
+                L["box_u"][:nv],
+            )
+        return views
+
+    def _solve_problem_levels(self, problem: np.ndarray, solution: np.ndarray, time_budget: float | None) -> str:
+        """The problem through the general cascade (:meth:`solve` on its levels, unchecked), into ``solution``."""
+        P, S = problem[0], solution[0]
+        result = self.solve(problem_levels(problem), P["lb"], P["ub"], check=False, time_budget=time_budget)
+        first, last = result.levels[0], result.levels[-1]
+        S["out_of_time"] = result.out_of_time
+        S["x1"] = first.x if first.x is not None else 0.0
+        S["tool_residual"] = -1.0 if first.residual is None else first.residual
+        S["slack_max"] = last.slack.max() if last.slack is not None and last.slack.size else -1.0
+        held = result.x is not None and bool(np.all(np.isfinite(result.x)))
+        S["x"] = result.x if held else 0.0
+        S["outcome"] = SOLVED if result.ok else (TOOL_HELD if held else STOPPED)
+        return "" if result.ok else result.status
+
+    def _count(self, ok: bool) -> None:
+        """Count one cascade in ``stats``."""
         self.stats.solves += 1
         if not ok:
             self.stats.failures += 1
@@ -328,7 +368,7 @@ class HierarchicalQP:
         failed = None if results[-1].ok else len(results) - 1
         x_good = results[-1].x if failed is None else (results[-2].x if len(results) > 1 else None)
         results += [LevelResult(LevelStatus.SKIPPED) for _ in range(len(results), n_levels)]
-        self.count_solve(failed is None)
+        self._count(failed is None)
         status = "solved" if failed is None else level_failure(failed, n_levels, results[failed])
         return HQPResult(
             x=None if x_good is None else x_good.copy(),
@@ -379,6 +419,18 @@ class HierarchicalQP:
             iterations=raw.iterations,
             message=raw.message,
         )
+
+
+_NO_BASIS = np.zeros((0, 0))
+
+
+def _refusal(raw: _Raw, code: int, worst: float) -> str:
+    """Why a line answer was refused (:func:`checked_line_answer`'s ``code``), after the back end's message."""
+    if raw.status is not LevelStatus.SOLVED:
+        return raw.message
+    if code == LINE_ANSWER_VIOLATED:
+        return f"{raw.message}: bounds or hard rows violated by {worst:.3g}"
+    return f"{raw.message}: non-finite or mis-shaped solution"
 
 
 def _out_of_time(start: float, level_start: float, budget: float) -> bool:

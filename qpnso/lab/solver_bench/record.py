@@ -1,4 +1,4 @@
-"""Recording the controller's QPs: :class:`QPRecorder` wraps ``ctrl.qp.solve`` of one controller and
+"""Recording the controller's QPs: :class:`QPRecorder` wraps ``ctrl.qp.solve_problem`` of one controller and
 rebuilds each level's QP with the cascade's public functions (:func:`level_problems`), advanced with the
 controller's own answer of the level above, so the benchmark solves exactly the QPs the controller solved;
 :func:`record_problem_set` runs the shipped controller on every source and saves the set with its
@@ -18,6 +18,8 @@ from qpnso.lab.solver_bench.problems import BenchProblem, save_problems
 from qpnso.lab.solver_bench.runs import compute_reference
 from qpnso.qp import Level, QPSettings
 from qpnso.qp.cascade import Cascade, LevelQP, advance_cascade, build_level_qp
+from qpnso.qp.problem import STOPPED, problem_levels
+from qpnso.qp.results import HQPResult, LevelResult, LevelStatus
 
 BENCH_REGULARIZATION = 1e-7
 """μ the recorded problems are built with: the controller's value for every ``qpsolvers`` back end
@@ -90,9 +92,9 @@ def _copy_or_none(a: np.ndarray | None) -> np.ndarray | None:
 
 class QPRecorder:
     """Records every QP a controller's hierarchical solver is asked, by wrapping
-    ``ctrl.qp.solve`` of that instance (nothing else is patched); while it records, the
-    controller's compiled tick is off (``ctrl.compiled_tick``: it would bypass ``solve``;
-    the general path gives the same QPs and answers, tests/test_tick.py).
+    ``ctrl.qp.solve_problem`` of that instance (nothing else is patched): each tick's problem
+    record as its levels (:func:`qpnso.qp.problem.problem_levels`), rebuilt with the answers
+    the solver gave (:func:`level_problems`).
 
     Use as a context manager; ``problems`` collects :class:`BenchProblem` of
     the ticks ``k`` with ``keep(k)`` true (default all), sequence name
@@ -115,31 +117,43 @@ class QPRecorder:
         self.ticks = 0
 
     def __enter__(self) -> "QPRecorder":
-        original = self.ctrl.qp.solve
+        original = self.ctrl.qp.solve_problem
 
-        def solve(levels, lb=None, ub=None, check=True, time_budget=None):
-            result = original(levels, lb, ub, check, time_budget)
+        def solve_problem(problem, solution, time_budget=None):
+            levels = problem_levels(problem)
+            lb, ub = problem[0]["lb"].copy(), problem[0]["ub"].copy()
+            why = original(problem, solution, time_budget)
             if self.keep(self.ticks):
                 self.problems += level_problems(
                     self.ctrl.qp.n,
                     levels,
                     lb,
                     ub,
-                    result,
+                    _answers(solution, bool(why), len(levels)),
                     self.settings,
                     f"{self.source}/c{self.chunk(self.ticks)}",
                     self.ticks,
                 )
             self.ticks += 1
-            return result
+            return why
 
-        self.ctrl.qp.solve = solve  # instance attribute shadows the method
-        self._compiled, self.ctrl.compiled_tick = self.ctrl.compiled_tick, False
+        self.ctrl.qp.solve_problem = solve_problem  # instance attribute shadows the method
         return self
 
     def __exit__(self, *exc) -> None:
-        del self.ctrl.qp.solve
-        self.ctrl.compiled_tick = self._compiled
+        del self.ctrl.qp.solve_problem
+
+
+def _answers(solution: np.ndarray, failed: bool, n_levels: int) -> HQPResult:
+    """The per-level answers of a solved problem record (:func:`qpnso.qp.problem.solution_dtype`), as
+    :func:`level_problems` reads them: level 1's least-norm answer ``x1``, level 2's ``x`` (a failed
+    level: not solved, the levels below it left out)."""
+    S = solution[0]
+    level1_ok = not (failed and S["outcome"] == STOPPED)
+    levels = [LevelResult(LevelStatus.SOLVED if level1_ok else LevelStatus.INACCURATE, x=S["x1"].copy())]
+    if n_levels > 1:
+        levels.append(LevelResult(LevelStatus.INACCURATE if failed else LevelStatus.SOLVED, x=S["x"].copy()))
+    return HQPResult(None if failed else S["x"].copy(), not failed, "", None, levels, 0.0)
 
 
 @dataclass(frozen=True)

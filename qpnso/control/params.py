@@ -1,0 +1,111 @@
+"""The control tick's constants as one named record (docs/method.md §7): what the tick's Numba kernels
+(:mod:`qpnso.control.tick`, :mod:`qpnso.control.memory`) read by field, built once per controller
+from its :class:`~qpnso.control.config.ControllerConfig` and robot (:func:`tick_params`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
+from qpnso.model.robot import Robot
+
+TOOL_MOVED_TOL = 1e-6
+"""m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
+cached continuity interval (its ends move by ~1e-6 rad at most, against a safety margin of degrees)."""
+
+Q_CHECK_WIDENING = 1e-9
+"""rad: a joint this close outside its limit is taken as within it (round-off of a clipped reading)."""
+
+_SCALARS = (
+    # level 1 and the joint bounds
+    "pose_gain",  # K_p (1/s)
+    "pose_correction_speed",  # m/s: the largest speed of the tool point's return to its reference
+    "pose_correction_angular_speed",  # rad/s: the same for its orientation
+    "half_dt",  # s: ½dt of level 1's second-order term
+    "joint_limit_gain",  # γ (1/s) of the joint-limit velocity damper
+    "recovery_speed",  # rad/s: the largest speed of a joint or the elbow back inside its limits
+    # the qp strategy's level 2
+    "cost_gain",  # k of the cost step k∇c
+    "nullspace_speed_max",  # rad/s: the cost step's null-space part at most this
+    "cost_filter_alpha",  # per-tick factor of the cost step's low-pass (0: none)
+    "elbow_gain",  # ξ (1/s) of the elbow rows' velocity damper
+    "slack_weight",  # ρ of the elbow rows' slack
+    # the command
+    "dt",  # s
+    "joint_damping",  # D (N·m·s/rad)
+    # the elbow [E 5], [E 6], [E 10], [E 11]
+    "rom_half_width",  # Δns (rad)
+    "safety_margin",  # d_sg (rad)
+    "stiffness_min",  # K_min (N·m/rad)
+    "stiffness_max",  # K_max (N·m/rad)
+    "stiffness_slope",  # α (1/rad)
+    "stiffness_inflection",  # d (rad)
+    "wrist_sin_min",  # the arm angle is singular with the wrist's sine to the vertical below this
+    "elbow_offset_min",  # m: or the elbow this close to the shoulder–wrist line
+    "interval_period",  # ticks between continuity-interval updates while the tool moves
+    "tool_moved_tol",  # TOOL_MOVED_TOL
+)
+_VECTORS = (
+    "q_check_lo",  # rad: q_min − Q_CHECK_WIDENING; below, Q_OUT_OF_LIMITS
+    "q_check_hi",  # rad
+    "q_accept_lo",  # rad: q_min − q_limit_tolerance; below, the tick refuses q
+    "q_accept_hi",  # rad
+    "q_min",  # rad
+    "q_max",  # rad
+    "dq_max",  # rad/s
+    "tau_limit",  # N·m; 0: none given
+)
+
+
+def params_dtype(n: int) -> np.dtype:
+    """The record type of :func:`tick_params` for ``n`` joints."""
+    return np.dtype([(name, np.float64) for name in _SCALARS] + [(name, np.float64, n) for name in _VECTORS])
+
+
+def tick_params(robot: Robot, config) -> np.ndarray:
+    """The tick's constants for ``robot`` under ``config`` (a :class:`~qpnso.control.config.ControllerConfig`),
+    as a 1-element record array (the form Numba reads cheaply)."""
+    from qpnso.control.strategies import filter_alpha
+
+    cfg, ec = config, config.elbow()
+    tolerance = math.radians(cfg.q_limit_tolerance_deg)
+    limit = np.array(robot.tau_limit, dtype=float)
+    values = dict(
+        pose_gain=cfg.pose_gain,
+        pose_correction_speed=cfg.pose_correction_speed,
+        pose_correction_angular_speed=cfg.pose_correction_angular_speed,
+        half_dt=0.5 * cfg.dt,
+        joint_limit_gain=cfg.joint_limit_gain,
+        recovery_speed=cfg.recovery_speed,
+        cost_gain=cfg.cost_gain,
+        nullspace_speed_max=cfg.nullspace_speed_max,
+        cost_filter_alpha=filter_alpha(cfg.cost_filter_time, cfg.dt),
+        elbow_gain=cfg.elbow_gain,
+        slack_weight=cfg.slack_weight,
+        dt=cfg.dt,
+        joint_damping=cfg.joint_damping,
+        rom_half_width=ec.half_width_rad,
+        safety_margin=ec.safety_margin_rad,
+        stiffness_min=ec.stiffness_min,
+        stiffness_max=ec.stiffness_max,
+        stiffness_slope=ec.alpha_per_rad,
+        stiffness_inflection=ec.d_rad,
+        wrist_sin_min=float(np.sin(np.radians(WRIST_CONE_DEG))),
+        elbow_offset_min=ELBOW_OFFSET_MIN_M,
+        interval_period=cfg.interval_period,
+        tool_moved_tol=TOOL_MOVED_TOL,
+        q_check_lo=robot.q_min - Q_CHECK_WIDENING,
+        q_check_hi=robot.q_max + Q_CHECK_WIDENING,
+        q_accept_lo=robot.q_min - tolerance,
+        q_accept_hi=robot.q_max + tolerance,
+        q_min=robot.q_min,
+        q_max=robot.q_max,
+        dq_max=robot.dq_max,
+        tau_limit=np.where(np.isfinite(limit) & (limit > 0), limit, 0.0),
+    )
+    params = np.zeros(1, params_dtype(robot.nq))
+    for name, value in values.items():
+        params[name] = value
+    return params

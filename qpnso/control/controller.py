@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,10 @@ from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
 from qpnso.qp import HierarchicalQP
 from qpnso.qp.problem import STOPPED, new_problem, new_solution
+
+
+Report = namedtuple("Report", report_dtype().names)  # type: ignore[misc]
+"""A tick's report record read into Python (:func:`qpnso.control.tick.report_dtype`'s fields)."""
 
 
 @dataclass(slots=True)
@@ -115,6 +120,8 @@ class Controller:
             q=np.zeros(n),
             dq_meas=np.zeros(n),
         )
+        command = self.records.command
+        self._command_views = (command["dq"][0], command["q_des"][0], command["tau"][0])
         self.strategy = make_strategy(cfg.strategy, self)
         self._reset_done = False
         self._warm_up()
@@ -262,20 +269,21 @@ class Controller:
 
     def _command(self, bits: int, t0: float, message: str, solve_time: float) -> Command:
         """The :class:`Command` of this tick's records, stamped (:func:`qpnso.control.config._stamped`)."""
-        c, r = self.records.command[0], self.records.report[0]
+        dq, q_des, tau = self._command_views
+        r = Report._make(self.records.report.item())  # (one read of the record: ~10x cheaper than by field)
         cmd = Command(
-            c["dq"].copy(),
-            c["q_des"].copy(),
-            c["tau"].copy(),
-            self.strategy.stiffness(float(r["stiffness"])),
-            float(r["ns"]),
-            (float(r["rom_lo"]), float(r["rom_hi"])),
-            (float(r["iv_lo"]), float(r["iv_hi"])),
-            float(r["cost"]),
+            dq.copy(),
+            q_des.copy(),
+            tau.copy(),
+            self.strategy.stiffness(r.stiffness),
+            r.ns,
+            (r.rom_lo, r.rom_hi),
+            (r.iv_lo, r.iv_hi),
+            r.cost,
             Status.OK,
             solve_time,
             0.0,
-            (float(r["e_pos"]), float(r["e_rot"])),
+            (r.e_pos, r.e_rot),
             message,
         )
         return _stamped(cmd, bits, t0)

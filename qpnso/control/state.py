@@ -127,6 +127,8 @@ class StateEvaluator:
             compile,
         )  # one input: one copy a tick
         self._zero_twist = np.zeros(6)
+        self._out: np.ndarray | None = None
+        self._record = np.zeros(1, self.dtype)
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until compiled code is used (benchmarks call this)."""
@@ -147,7 +149,10 @@ class StateEvaluator:
         """The state at ``q`` (rad), the previous command ``dq`` (rad/s) and the tool ``twist`` (validated by
         the caller) as a :func:`state_dtype` record (1-element array) in the evaluator's own buffer, not yet
         made safe: read it before the next call, which overwrites it."""
-        return self._fn.evaluate_in_place(q, dq, twist).view(self.dtype)
+        out = self._fn.evaluate_in_place(q, dq, twist)
+        if out is not self._out:  # (the function's buffer: its record view is made once)
+            self._out, self._record = out, out.view(self.dtype)
+        return self._record
 
 
 PREDICTION_DAMPING = 1e-2

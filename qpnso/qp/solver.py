@@ -83,7 +83,8 @@ class HierarchicalQP:
         self.stats = HQPStats()
         self._backend = _make_backend(backend, self.settings, self.stats)
         self._tol = tolerance_record(self.settings)
-        self._line: np.ndarray | None = None  # line_setup's record (made for the first problem's shape)
+        self._line = np.zeros(0)  # line_setup's record, made for the problems of one record type
+        self._line_for: np.dtype | None = None
         self._line_views: dict[tuple[int, int], tuple] = {}
 
     def solve(
@@ -308,11 +309,10 @@ class HierarchicalQP:
         return level_failure(1, 2, result)
 
     def _line_record(self, problem: np.ndarray) -> np.ndarray:
-        """The line record for problems of this one's shape (made once: its views go to ProxSuite)."""
-        soft = problem.dtype["soft_l"].shape[0]
-        if self._line is None or self._line.dtype["l"].shape[0] != soft:
-            self._line = np.zeros(1, line_dtype(self.n, soft))
-            self._line_views = {}
+        """The line record for problems of this one's record type (made once: its views go to ProxSuite)."""
+        if problem.dtype is not self._line_for:
+            self._line = np.zeros(1, line_dtype(self.n, problem.dtype["soft_l"].shape[0]))
+            self._line_for, self._line_views = problem.dtype, {}
         return self._line
 
     def _line_arrays(self, line: np.ndarray, nv: int, p: int) -> tuple:

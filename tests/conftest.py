@@ -48,3 +48,15 @@ def reference_arm_angle(robot: qpnso.Robot, q: np.ndarray) -> float:
     u_cos = np.cross(p_sw, u_sin)
     u_cos /= np.linalg.norm(u_cos)
     return float(np.arctan2(p_se @ u_sin, p_se @ u_cos))
+
+
+def limit_params(q_min: np.ndarray, q_max: np.ndarray, dq_max: np.ndarray, gain: float, recovery: float):
+    """A params record (qpnso.control.params) holding only the joint limits and their damper's gain (1/s) and
+    recovery speed (rad/s): what ``velocity_bounds`` reads, given by hand."""
+    from qpnso.control.params import params_dtype
+
+    params = np.zeros(1, params_dtype(len(q_min)))
+    P = params[0]
+    P["q_min"], P["q_max"], P["dq_max"] = q_min, q_max, dq_max
+    P["joint_limit_gain"], P["recovery_speed"] = gain, recovery
+    return P

@@ -57,7 +57,7 @@ def test_kernel_recompiles_when_a_kernel_it_calls_in_another_module_changes(tmp_
         assert tick.__file__.startswith({str(src)!r}), tick.__file__
         c, s = np.cos(0.3), np.sin(0.3)
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        e, ok = tick.pose_error(R, np.zeros(3), np.eye(3), np.ones(3))
+        e = tick.pose_error(R, np.zeros(3), np.eye(3), np.ones(3))
         print(repr([round(float(v), 12) for v in e]))
     """
 

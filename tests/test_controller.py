@@ -16,7 +16,7 @@ import pytest
 import qpnso
 from qpnso.control.config import ControllerConfig, Status
 from qpnso.control.controller import Controller
-from qpnso.qp import HQPResult, LevelResult, LevelStatus
+from qpnso.qp.problem import STOPPED
 
 DT = 1e-3
 
@@ -243,15 +243,15 @@ def test_failed_qp_falls_back_to_holding_the_tool(lwr_qp: Controller, monkeypatc
     q0 = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2])
     lwr_qp.reset(q0)
 
-    def failing(levels, lb, ub, check=True, time_budget=None):
-        return HQPResult(None, False, "level 1 of 2 infeasible: test", 0, [LevelResult(LevelStatus.INFEASIBLE)], 0.0)
+    def failing(problem, solution, time_budget=None):  # level 1 failed: the solver leaves zero
+        solution[0]["x"], solution[0]["outcome"] = 0.0, STOPPED
+        return "level 1 of 2 infeasible: test"
 
-    monkeypatch.setattr(lwr_qp.qp, "solve", failing)
-    monkeypatch.setattr(lwr_qp, "compiled_tick", False)  # the compiled tick does not call qp.solve (test_tick.py)
+    monkeypatch.setattr(lwr_qp.qp, "solve_problem", failing)
     cmd = lwr_qp.step(q0)
     assert cmd.status & Status.QP_FAILED and not cmd.ok
     assert np.all(cmd.dq == 0) and np.all(np.isfinite(cmd.tau))
-    assert "QP failed" in cmd.message
+    assert cmd.message == "QP failed (level 1 of 2 infeasible: test): joints stopped"
 
 
 def test_singular_arm_angle_drops_the_elbow_constraints(lwr_qp: Controller) -> None:

@@ -52,12 +52,12 @@ def test_q_in_degrees_is_refused_naming_the_joint_in_both_units(controllers) -> 
         ctrl.step(np.degrees(Q1))
 
 
-@pytest.mark.parametrize("compiled", [True, False])
-def test_a_refused_q_changes_nothing(robot, compiled: bool) -> None:
-    """A q beyond the tolerance is refused by either path (the compiled tick checks it in its kernel) before
-    anything changes: the reference, the elbow memory and the next command are those of a controller that
-    never saw it, with or without a new ``tool_pose`` in the refused call."""
-    a, b = (Controller(robot, ControllerConfig(compiled_tick=compiled)) for _ in range(2))
+@pytest.mark.parametrize("strategy", ["qp", "damped"])
+def test_a_refused_q_changes_nothing(robot, strategy: str) -> None:
+    """A q beyond the tolerance is refused (the tick's first kernel checks it) before anything changes: the
+    reference, the memory record and the next command are those of a controller that never saw it, with
+    or without a new ``tool_pose`` in the refused call."""
+    a, b = (Controller(robot, ControllerConfig(strategy=strategy)) for _ in range(2))
     for ctrl in (a, b):
         ctrl.reset(Q1)
     moved = robot.tool_pose(Q1)
@@ -66,6 +66,7 @@ def test_a_refused_q_changes_nothing(robot, compiled: bool) -> None:
         with pytest.raises(qpnso.InputError, match=r"q\[3\].*outside its limits"):
             a.step(Q1 + np.radians([0, 0, 0, 200, 0, 0, 0]), **kwargs)
     np.testing.assert_array_equal(a.ref_position, b.ref_position)
+    assert a.records.memory.tobytes() == b.records.memory.tobytes()
     x, y = a.step(Q1, tool_twist=[0.01, 0, 0, 0, 0, 0]), b.step(Q1, tool_twist=[0.01, 0, 0, 0, 0, 0])
     assert x.status == y.status
     np.testing.assert_array_equal(x.dq, y.dq)
@@ -304,7 +305,7 @@ def test_a_controller_out_of_time_holds_the_tool_and_says_so(robot) -> None:
     ``QP_FAILED``: the cost level did not run), and its command is level 1's least-norm answer: the tool
     moves as in the full tick (J·dq equal, by Pinocchio's Jacobian: level 1's target is the same) with no
     null-space motion (dq = J⁺J·dq_full)."""
-    cfg = dict(compiled_tick=False, qp_settings=QPSettings(line_fast_path=False))
+    cfg = dict(qp_settings=QPSettings(line_fast_path=False))
     slow = Controller(robot, ControllerConfig(solver_time_budget=1e-12, **cfg))
     free = Controller(robot, ControllerConfig(**cfg))
     twist = np.array([0.01, 0, 0, 0, 0, 0])
@@ -326,10 +327,12 @@ def test_a_controller_out_of_time_holds_the_tool_and_says_so(robot) -> None:
 
 
 def test_pose_correction_is_capped_only_for_large_errors() -> None:
+    from qpnso.control.params import params_dtype
     from qpnso.control.tick import pose_correction
 
-    gains = np.zeros(10)
-    gains[0], gains[8], gains[9] = 200.0, 0.1, 1.0
+    params = np.zeros(1, params_dtype(7))
+    gains = params[0]
+    gains["pose_gain"], gains["pose_correction_speed"], gains["pose_correction_angular_speed"] = 200.0, 0.1, 1.0
     small = np.array([1e-6, -2e-6, 0.0, 1e-6, 0.0, 0.0])
     np.testing.assert_array_equal(pose_correction(small, gains), 200.0 * small)  # a held tool's: unchanged
     big = np.array([0.03, 0.04, 0.0, 0.0, 0.2, 0.0])  # 5 cm, 0.2 rad
@@ -382,49 +385,37 @@ def test_a_checked_pose_is_c_ordered(robot) -> None:
     assert R.flags.c_contiguous and p.flags.c_contiguous
 
 
-def test_finish_command_by_hand() -> None:
+def test_finish_command_by_hand(robot) -> None:
     """The last step of every tick on hand values: dq clipped to ±dq_max with q_des following, τ saturated
     (a limit of 0 means none given), the ROM excursion flagged, a NaN replaced by the stop command."""
     from qpnso.control.flags import FLAG_ELBOW_OUTSIDE_ROM, FLAG_INTERNAL_ERROR, FLAG_TORQUE_SATURATED
-    from qpnso.control.tick import finish_command
+    from qpnso.control.params import tick_params
+    from qpnso.control.tick import command_dtype, finish_command, report_dtype
 
-    q, dq_max, tau_limit, g = np.zeros(3), np.array([1.0, 1.0, 1.0]), np.array([10.0, 0.0, 10.0]), np.ones(3)
-    dq, tau = np.array([1.5, -0.5, -2.0]), np.array([12.0, 50.0, -3.0])
-    q_des = q + 1e-3 * dq
-    bits = finish_command(q, dq, q_des, tau, g, tau_limit, dq_max, 1e-3, 0.5, -0.1, 0.1, False)
-    np.testing.assert_array_equal(dq, [1.0, -0.5, -1.0])
-    np.testing.assert_allclose(q_des, [1e-3, -0.5e-3, -1e-3], rtol=0, atol=1e-18)
-    np.testing.assert_array_equal(tau, [10.0, 50.0, -3.0])
+    params = tick_params(robot, ControllerConfig())
+    P = params[0]
+    P["dq_max"], P["tau_limit"], P["dt"] = 1.0, [10.0, 0.0, 10.0, 0, 0, 0, 0], 1e-3
+    report = np.zeros(1, report_dtype())
+    r = report[0]
+    r["ns"], r["rom_lo"], r["rom_hi"] = 0.5, -0.1, 0.1
+    command = np.zeros(1, command_dtype(7))
+    c = command[0]
+    q, g = np.zeros(7), np.ones(7)
+    c["dq"], c["tau"] = [1.5, -0.5, -2.0, 0, 0, 0, 0], [12.0, 50.0, -3.0, 0, 0, 0, 0]
+    c["q_des"] = q + 1e-3 * c["dq"]
+    bits = finish_command(q, c, g, P, r)
+    np.testing.assert_array_equal(c["dq"][:3], [1.0, -0.5, -1.0])
+    np.testing.assert_allclose(c["q_des"][:3], [1e-3, -0.5e-3, -1e-3], rtol=0, atol=1e-18)
+    np.testing.assert_array_equal(c["tau"][:3], [10.0, 50.0, -3.0])
     assert bits == FLAG_TORQUE_SATURATED | FLAG_ELBOW_OUTSIDE_ROM
-    assert finish_command(q, dq, q_des, tau, g, tau_limit, dq_max, 1e-3, 0.5, -0.1, 0.1, True) == 0  # dropped
-    dq[1] = np.nan
-    bits = finish_command(q, dq, q_des, tau, g, tau_limit, dq_max, 1e-3, 0.0, -0.1, 0.1, False)
-    assert bits == FLAG_INTERNAL_ERROR
-    np.testing.assert_array_equal(dq, 0.0)
-    np.testing.assert_array_equal(q_des, q)
-    np.testing.assert_array_equal(tau, g)
-
-
-def test_sanitize_state_by_hand(robot, controllers) -> None:
-    """An undefined cost is zeroed and flagged, an undefined arm angle made singular (its sine 0), a
-    non-finite pose, J, A or g flagged INTERNAL_ERROR; a finite state is left alone."""
-    from qpnso.control.flags import FLAG_COST_UNDEFINED, FLAG_INTERNAL_ERROR
-    from qpnso.control.state import sanitize_state
-
-    ev = controllers["qp"].evaluate
-    o = ev.offsets
-    flat = ev.raw(Q1, np.zeros(7), np.zeros(6)).copy()
-    clean = flat.copy()
-    assert sanitize_state(flat, o) == 0
-    np.testing.assert_array_equal(flat, clean)
-    flat[o[4] + 2] = np.nan  # a cost-gradient entry
-    flat[o[5]] = np.inf  # the arm angle
-    assert sanitize_state(flat, o) == FLAG_COST_UNDEFINED
-    np.testing.assert_array_equal(flat[o[3] : o[5]], 0.0)
-    np.testing.assert_array_equal(flat[o[5] : o[8]], 0.0)  # wrist sine 0: singular
-    np.testing.assert_array_equal(flat[: o[3]], clean[: o[3]])
-    flat[o[9]] = np.nan  # gravity
-    assert sanitize_state(flat, o) & FLAG_INTERNAL_ERROR
+    r["dropped"] = 1
+    assert finish_command(q, c, g, P, r) == 0  # dropped: no ROM to be outside of
+    r["ns"] = 0.0
+    c["dq"][1] = np.nan
+    assert finish_command(q, c, g, P, r) == FLAG_INTERNAL_ERROR
+    np.testing.assert_array_equal(c["dq"], 0.0)
+    np.testing.assert_array_equal(c["q_des"], q)
+    np.testing.assert_array_equal(c["tau"], g)
 
 
 def test_an_unexpected_exception_stops_the_joints_and_says_why(robot, monkeypatch) -> None:

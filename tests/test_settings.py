@@ -34,8 +34,8 @@ SETTINGS_CLASSES = (ControllerConfig, CostWeights, QPSettings, SimulationConfig,
     "kwargs, message",
     [
         ({"dt": "0.001"}, "dt = '0.001': expected a finite number"),
-        ({"compiled_tick": "no"}, "compiled_tick = 'no': expected true or false"),
-        ({"compiled_tick": 1}, "compiled_tick = 1: expected true or false"),
+        ({"qp_settings": {"warm_start": "no"}}, "qp_settings.warm_start = 'no': expected true or false"),
+        ({"qp_settings": {"warm_start": 1}}, "qp_settings.warm_start = 1: expected true or false"),
         ({"interval_period": 2.5}, "interval_period = 2.5: expected an integer"),
         ({"interval_period": True}, "interval_period = True: expected an integer"),
         ({"pose_gain": float("inf")}, "pose_gain = inf: expected a finite number"),
@@ -66,7 +66,9 @@ def test_unknown_keys_are_listed_with_the_valid_ones() -> None:
         ControllerConfig.from_dict({"qp_settings": {"maxiter": 3}})
     listed = str(exc.value).split("valid keys: ")[1].split(", ")
     assert listed == sorted(f.name for f in dataclasses.fields(QPSettings)) and "max_iter_active_set" in listed
-    with pytest.raises(qpnso.ConfigError, match=r"unknown keys 'colour', 'shape'; valid keys: compile, compiled_tick"):
+    with pytest.raises(
+        qpnso.ConfigError, match=r"unknown keys 'colour', 'shape'; valid keys: compile, cost_filter_time"
+    ):
         ControllerConfig.from_dict({"shape": 1, "colour": "red"})
     with pytest.raises(qpnso.ConfigError, match=r"hand: unknown key 'stifness'; valid keys: damping, "):
         SimulationConfig(hand={"stifness": 3.0})
@@ -113,14 +115,13 @@ def test_numpy_scalars_are_numbers_and_errors_show_plain_values() -> None:
     cfg = ControllerConfig(
         dt=np.float64(0.002),
         interval_period=np.int64(5),
-        compiled_tick=np.bool_(False),
         fixed_posture=np.zeros(7),
         weights={"mass": np.float32(0.5)},
-        qp_settings={"max_iter": np.int32(50), "max_iter_active_set": np.int64(50)},
+        qp_settings={"max_iter": np.int32(50), "max_iter_active_set": np.int64(50), "warm_start": np.bool_(False)},
     )
     assert type(cfg.dt) is float and cfg.dt == 0.002
     assert type(cfg.interval_period) is int and cfg.interval_period == 5
-    assert cfg.compiled_tick is False
+    assert cfg.qp_settings.warm_start is False
     assert cfg.fixed_posture == (0.0,) * 7 and all(type(x) is float for x in cfg.fixed_posture)
     assert type(cfg.weights.mass) is float and type(cfg.qp_settings.max_iter) is int
     with pytest.raises(qpnso.ConfigError) as exc:
@@ -230,7 +231,7 @@ def test_wrong_typed_numbers_and_flags_always_name_the_key(field, value) -> None
     [
         ('dt = "0.001"\n', "dt = '0.001': expected a finite number"),
         ('[controller]\ndt = "0.001"\n', "dt = '0.001': expected a finite number"),
-        ('[controller]\ncompiled_tick = "no"\n', "compiled_tick = 'no': expected true or false"),
+        ('[controller.qp_settings]\nwarm_start = "no"\n', "qp_settings.warm_start = 'no': expected true or false"),
         ("[controller]\ninterval_period = 2.5\n", "interval_period = 2.5: expected an integer"),
         ('[controller.weights]\nmass = "1"\n', "weights.mass = '1': expected a finite number"),
         (

@@ -193,7 +193,7 @@ def recorded():
     traj = traj.window(traj.t[0], traj.t[0] + 0.5)
     with sb.QPRecorder(ctrl, "A", keep=lambda k: k >= 200) as rec:
         sb_record._track(ctrl, traj, sc.start(robot), 215)
-    assert "solve" not in vars(ctrl.qp) and ctrl.compiled_tick  # the wrapper is gone afterwards
+    assert "solve_problem" not in vars(ctrl.qp)  # the wrapper is gone afterwards
     return rec.problems
 
 

@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 import qpnso
-from qpnso.control.state import PREDICTION_DAMPING, StateEvaluator, state_views
+from qpnso.control.state import PREDICTION_DAMPING, StateEvaluator, TickState, sanitize_state
 from qpnso.elbow import arm_angle as E
 from qpnso.model.costs import CostModel, CostWeights
 
@@ -46,7 +46,6 @@ def test_every_field_matches_its_independent_computation(evaluator, rng) -> None
         assert s.arm_angle == pytest.approx(elbow.value, abs=1e-12)
         np.testing.assert_allclose(s.arm_angle_gradient, E.arm_angle_gradient(robot, q), atol=1e-9)
         assert (s.wrist_sin, s.elbow_offset) == pytest.approx((elbow.wrist_sin, elbow.elbow_offset_m), abs=1e-12)
-        np.testing.assert_array_equal(s.pose, np.r_[s.tool_rotation.ravel(order="F"), s.tool_position])
         np.testing.assert_array_equal(s.tool_drift, np.zeros(6))  # no velocity given
         dq = rng.normal(size=7)
         moving = evaluator(q, dq)
@@ -63,19 +62,35 @@ def test_every_field_matches_its_independent_computation(evaluator, rng) -> None
         np.testing.assert_allclose(evaluator(q, dq, twist).tool_drift, a.vector, atol=1e-12)
 
 
-def test_fields_are_views_of_one_array_and_raw_is_the_same_state(evaluator) -> None:
+def test_the_record_is_the_function_buffer_field_for_field(evaluator) -> None:
+    """The record is a view of the CasADi function's output (no copy a tick), overwritten by the next call;
+    each field holds what the TickState of the same q holds."""
     q = evaluator.robot.sample_configuration()
     s = evaluator(q)
-    base = s.pose.base
-    for field in (s.tool_rotation, s.tool_position, s.jacobian, s.mass_matrix, s.gravity, s.cost_gradient):
-        assert np.shares_memory(field, base)
-    flat = evaluator.raw(q, np.zeros(7), np.zeros(6))
-    assert flat.shape == (evaluator.offsets[-1],)
-    again = evaluator.state(q, flat.copy())
-    for a, b in ((s.jacobian, again.jacobian), (s.mass_matrix, again.mass_matrix), (s.gravity, again.gravity)):
-        np.testing.assert_array_equal(a, b)
-    assert flat is evaluator.raw(
-        q + 0.01, np.zeros(7), np.zeros(6)
-    )  # the evaluator's buffer, overwritten by the next call
-    views = state_views(flat, evaluator.offsets)
-    assert len(views) == len(evaluator.offsets)  # ten parts; the two singularity measures come apart
+    record = evaluator.record(q, np.zeros(7), np.zeros(6))
+    assert record.shape == (1,) and record.dtype == evaluator.dtype
+    view = TickState.of(q, record)
+    for name in ("tool_rotation", "tool_position", "jacobian", "mass_matrix", "gravity", "cost_gradient"):
+        np.testing.assert_array_equal(getattr(view, name), getattr(s, name))
+    assert (view.cost, view.arm_angle, view.wrist_sin) == (s.cost, s.arm_angle, s.wrist_sin)
+    assert evaluator.record(q + 0.01, np.zeros(7), np.zeros(6)) is record  # the same buffer, overwritten
+    assert not np.array_equal(view.jacobian, s.jacobian)
+
+
+def test_sanitize_state_zeroes_what_it_can_and_refuses_the_rest(evaluator) -> None:
+    from qpnso.control.flags import FLAG_COST_UNDEFINED, FLAG_INTERNAL_ERROR
+
+    q = evaluator.robot.sample_configuration()
+    clean = evaluator.record(q, np.zeros(7), np.zeros(6)).copy()
+    assert sanitize_state(clean[0]) == 0
+    bad = clean.copy()
+    bad[0]["cost_gradient"][2] = np.nan
+    assert sanitize_state(bad[0]) == FLAG_COST_UNDEFINED
+    assert bad[0]["cost"] == 0.0 and not bad[0]["cost_gradient"].any()
+    bad = clean.copy()
+    bad[0]["elbow_offset"] = np.inf  # an undefined arm angle: made singular (wrist sine 0), no flag of its own
+    assert sanitize_state(bad[0]) == 0 and bad[0]["wrist_sin"] == 0.0 and not bad[0]["arm_angle_gradient"].any()
+    for field, index in (("R", (1, 2)), ("p", 0), ("J", (5, 6)), ("A", (3, 3)), ("g", 6), ("drift", 1)):
+        bad = clean.copy()
+        bad[0][field][index] = np.nan
+        assert sanitize_state(bad[0]) == FLAG_INTERNAL_ERROR, field

@@ -1,19 +1,23 @@
-"""The compiled tick (qpnso/control/tick.py): its kernels against independent computations, and the
-controller's compiled path against its general path (HierarchicalQP.solve) tick by tick."""
+"""The control tick (qpnso/control/tick.py) on its records: each kernel against an independent computation
+(Pinocchio, hand values, brute force), the problem a tick states against one built by hand from Pinocchio,
+the line fast path against the general cascade on the same problems, and every way a tick can fail."""
 
 from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import limit_params, reference_arm_angle
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import qpnso
-from qpnso.control import elbow_memory, tick
+from qpnso.control import memory as M
+from qpnso.control import tick
 from qpnso.control.config import ControllerConfig, Status
 from qpnso.control.controller import Controller
-from qpnso.qp import LevelStatus
+from qpnso.control.params import tick_params
+from qpnso.qp import Level, LevelStatus
 from qpnso.qp.backends import _Raw
 
 DT = 1e-3
@@ -25,78 +29,66 @@ def robot() -> qpnso.Robot:
     return qpnso.load_robot("lwr4p")
 
 
-def pair(robot, **cfg) -> tuple[Controller, Controller]:
-    """The same controller twice: compiled tick allowed, and general path only."""
-    fast = Controller(robot, ControllerConfig(strategy="qp", **cfg))
-    slow = Controller(robot, ControllerConfig(strategy="qp", compiled_tick=False, **cfg))
-    assert fast.compiled_tick and not slow.compiled_tick
-    return fast, slow
-
-
-def count_compiled(ctrl: Controller, monkeypatch) -> list[int]:
-    """Counts the ticks the compiled path answered (it returned the Command, not a hand-over)."""
-    hits = [0]
-    original = ctrl._compiled
-
-    def spy(*args):
-        out = original(*args)
-        hits[0] += type(out) is qpnso.Command
-        return out
-
-    monkeypatch.setattr(ctrl, "_compiled", spy)
-    return hits
-
-
-def assert_same(a, b, tol: float = 1e-12) -> None:
-    np.testing.assert_allclose(a.dq, b.dq, rtol=0, atol=tol)
-    np.testing.assert_allclose(a.tau, b.tau, rtol=0, atol=1e3 * tol)
-    np.testing.assert_allclose(a.q_des, b.q_des, rtol=0, atol=tol)
-    assert a.status == b.status and a.message == b.message
-    assert a.rom == b.rom and a.interval == b.interval and a.arm_angle == b.arm_angle
-    np.testing.assert_allclose(a.tool_error, b.tool_error, rtol=0, atol=tol)
-
-
-def held_both(fast: Controller, slow: Controller, q0: np.ndarray, ticks: int) -> None:
-    """Both controllers from ``q0`` with the tool held, the same ``q`` each tick: same commands."""
-    fast.reset(q0), slow.reset(q0)
-    q = q0.copy()
-    for _ in range(ticks):
-        a, b = fast.step(q), slow.step(q)
-        assert_same(a, b)
-        q = q + DT * a.dq
-
-
-# ------------------------------------------------------------------ kernels
 def random_rotation(rng: np.random.Generator, max_angle: float) -> np.ndarray:
     axis = rng.normal(size=3)
     return pin.exp3(axis / np.linalg.norm(axis) * rng.uniform(0, max_angle))
 
 
-def test_pose_error_is_pinocchio_log3() -> None:
+def assert_close(a, b, tol: float) -> None:
+    """Two commands equal to ``tol`` (rad/s; N·m at 1e3·tol), with the same status and elbow."""
+    np.testing.assert_allclose(a.dq, b.dq, rtol=0, atol=tol)
+    np.testing.assert_allclose(a.tau, b.tau, rtol=0, atol=1e3 * tol)
+    assert (a.status & ~Status.QP_FALLBACK) == (b.status & ~Status.QP_FALLBACK)
+    assert a.rom == b.rom and a.interval == b.interval and a.arm_angle == b.arm_angle
+
+
+def count_paths(ctrl: Controller, monkeypatch) -> dict[str, int]:
+    """Counts the ticks solved on the line and by the general cascade."""
+    counts = {"line": 0, "cascade": 0}
+    original = ctrl.qp._solve_problem_levels
+
+    def cascade(*args):
+        counts["cascade"] += 1
+        return original(*args)
+
+    def problem(*args):
+        counts["line"] += 1
+        return solve(*args)
+
+    solve = ctrl.qp.solve_problem
+    monkeypatch.setattr(ctrl.qp, "_solve_problem_levels", cascade)
+    monkeypatch.setattr(ctrl.qp, "solve_problem", problem)
+    return counts
+
+
+# ------------------------------------------------------------------ kernels
+def test_pose_error_is_pinocchio_log3_up_to_pi() -> None:
     rng = np.random.default_rng(0)
-    for scale in (1e-9, 1e-5, 1e-3, 0.1, 1.0, 3.0, tick.LOG3_MAX_ANGLE):
+    for scale in (1e-9, 1e-5, 1e-3, 0.1, 1.0, tick.LOG3_NEAR_PI, 3.0, np.pi - 1e-3, np.pi - 1e-6, np.pi):
         for _ in range(200):
-            R, R_ref = random_rotation(rng, np.pi), None
-            R_ref = random_rotation(rng, scale) @ R
+            R = random_rotation(rng, np.pi)
+            axis = rng.normal(size=3)
+            angle = scale if scale > 2.0 else rng.uniform(0, scale)
+            R_ref = pin.exp3(axis / np.linalg.norm(axis) * angle) @ R
             p, p_ref = rng.normal(size=3), rng.normal(size=3)
-            e, ok = tick.pose_error(R, p, R_ref, p_ref)
-            assert ok
+            e = tick.pose_error(R, p, R_ref, p_ref)
             np.testing.assert_allclose(e[:3], p_ref - p, rtol=0, atol=1e-15)
-            np.testing.assert_allclose(e[3:], pin.log3(R_ref @ R.T), rtol=0, atol=1e-12)
+            if angle > 3.0:  # the rotation and its angle (at π the axis's sign is either; log₃ loses 1e-16/sin θ)
+                np.testing.assert_allclose(pin.exp3(e[3:]), R_ref @ R.T, rtol=0, atol=1e-13)
+                assert np.linalg.norm(e[3:]) == pytest.approx(angle, abs=1e-9)
+            else:
+                np.testing.assert_allclose(e[3:], pin.log3(R_ref @ R.T), rtol=0, atol=1e-12)
 
 
-def test_pose_error_near_pi_is_refused_and_the_controller_uses_log3(robot) -> None:
-    R = np.eye(3)
-    R_ref = pin.exp3(np.array([0.0, 0.0, np.pi - 1e-4]))
-    _, ok = tick.pose_error(R, np.zeros(3), R_ref, np.zeros(3))
-    assert not ok
+def test_a_reference_near_pi_away_gives_a_finite_bounded_correction(robot) -> None:
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     ctrl.reset(Q0)
     state = ctrl.evaluate(Q0)
     ctrl.ref_rotation = pin.exp3(np.array([0.0, 0.0, np.pi - 1e-4])) @ state.tool_rotation
-    np.testing.assert_allclose(ctrl._pose_error(state)[3:], [0, 0, np.pi - 1e-4], atol=1e-9)
-    cmd = ctrl.step(Q0)  # the compiled kernel refuses the pose, the general path answers
+    cmd = ctrl.step(Q0)
     assert np.all(np.isfinite(cmd.dq)) and cmd.tool_error[1] == pytest.approx(np.pi - 1e-4, abs=1e-9)
+    b1 = ctrl.records.problem[0]["b1"]
+    np.testing.assert_allclose(b1[3:], [0, 0, ctrl.config.pose_correction_angular_speed], atol=1e-9)
 
 
 @settings(max_examples=200, deadline=None)
@@ -105,7 +97,7 @@ def test_velocity_bounds_keep_q_inside_its_limits(robot, q_list) -> None:
     q = np.array(q_list)
     gain = 20.0
     recovery = 0.2
-    lb, ub = tick.velocity_bounds(q, robot.q_min, robot.q_max, robot.dq_max, gain, recovery)
+    lb, ub = tick.velocity_bounds(q, limit_params(robot.q_min, robot.q_max, robot.dq_max, gain, recovery))
     assert np.all(lb <= ub) and np.all(np.abs(lb) <= robot.dq_max) and np.all(np.abs(ub) <= robot.dq_max)
     inside = (q >= robot.q_min) & (q <= robot.q_max)
     for v in (lb, ub):  # one tick at either bound stays inside (γ·dt ≤ 1)
@@ -141,77 +133,89 @@ def test_low_pass() -> None:
     assert np.array_equal(out, step) and out is not step
 
 
-def test_qp_torque_is_gravity_plus_projected_impedance(robot) -> None:
+def test_finish_tick_is_gravity_plus_the_projected_impedance(robot) -> None:
+    """τ = g + (I − J̄J)ᵀ(K·dt·q̇ + D(q̇ − q̇_meas)) with J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ from Pinocchio, inverted by hand."""
     rng = np.random.default_rng(2)
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     q = robot.random_q(rng, margin=0.2)
+    ctrl.reset(q)
+    ctrl.step(q)
+    rec = ctrl.records
+    dq, dq_meas = rng.normal(size=7) * 0.1, rng.normal(size=7) * 0.1
+    rec.solution[0]["x"], rec.solution[0]["outcome"] = dq, 0
+    K = float(rec.report[0]["stiffness"])
+    state = rec.state.copy()
+    tick.finish_tick(q, dq_meas, state, rec.params, rec.solution, rec.report, rec.command)
     J = robot.jacobian(q)
     A = pin.crba(robot.model, robot.data, q)
     A = np.triu(A) + np.triu(A, 1).T
     g = pin.computeGeneralizedGravity(robot.model, robot.data, q)
-    dq, dq_meas = rng.normal(size=7), rng.normal(size=7)
-    tau = tick.qp_torque(A, g, J, dq, dq_meas, 20.0, DT, 10.0)
     Ai = np.linalg.inv(A)
     Jbar = Ai @ J.T @ np.linalg.inv(J @ Ai @ J.T)
-    expected = g + (np.eye(7) - Jbar @ J).T @ (20.0 * DT * dq + 10.0 * (dq - dq_meas))
+    expected = g + (np.eye(7) - Jbar @ J).T @ (K * DT * dq + ctrl.config.joint_damping * (dq - dq_meas))
+    c = rec.command[0]
     # JA⁻¹Jᵀ is regularised by 1e-12 of its trace (linalg.py): agreement to its conditioning
-    np.testing.assert_allclose(tau, expected, rtol=0, atol=1e-6 * np.linalg.norm(expected))
+    np.testing.assert_allclose(c["tau"], expected, rtol=0, atol=1e-6 * np.linalg.norm(expected))
+    np.testing.assert_array_equal(c["dq"], dq)
+    np.testing.assert_allclose(c["q_des"], q + DT * dq, rtol=0, atol=1e-15)
 
 
-def test_elbow_advance_unwraps_the_arm_angle_and_ages_the_interval() -> None:
+def memory_at(ns: float) -> np.ndarray:
+    return M.new_memory(7, ns, 0.0, np.eye(3), np.zeros(3))
+
+
+def test_elbow_advance_unwraps_the_arm_angle_and_ages_the_interval(robot) -> None:
     rng = np.random.default_rng(4)
+    P = tick_params(robot, ControllerConfig(interval_period=10))[0]
     path = np.cumsum(rng.uniform(-0.5, 0.5, 400)) + 3.0  # crosses ±π many times
-    memory = elbow_memory.elbow_memory(path[0])
-    pose = rng.normal(size=12)
+    memory = memory_at(path[0])
+    m = memory[0]
+    state = np.zeros(1, qpnso.control.state.state_dtype(7))
+    s = state[0]
+    s["R"], s["p"] = random_rotation(rng, 3.0), rng.normal(size=3)
     unwrapped = []
     for ns in path:
-        value, recompute = elbow_memory.elbow_advance(float(np.angle(np.exp(1j * ns))), pose, memory, 10, 1e-6)
-        assert recompute  # no interval known yet
-        unwrapped.append(value)
+        s["arm_angle"] = float(np.angle(np.exp(1j * ns)))
+        assert M.elbow_advance(s, m, P)  # no interval known yet
+        unwrapped.append(float(m["ns"]))
     np.testing.assert_allclose(unwrapped, path, atol=1e-12)
-    elbow_memory.store_interval(memory, -1.0, 2.0, False, pose)
-    moved = pose + 2e-6
-    poses = [pose] * 12 + [moved] * 12
-    answers = [elbow_memory.elbow_advance(memory[elbow_memory.NS], p, memory, 10, 1e-6)[1] for p in poses]
+    M.store_interval(memory, -1.0, 2.0, False, s["R"].copy(), s["p"].copy())
+    answers = []
+    for k in range(24):
+        if k == 12:
+            s["p"] = s["p"] + 2e-6  # the tool moves by more than 1e-6
+        answers.append(M.elbow_advance(s, m, P))
     # the same pose keeps the interval at any age; a moved tool renews it once it is 10 ticks old
     assert answers == [False] * 12 + [True] * 12
-    assert memory[elbow_memory.IV_AGE] == 24
+    assert m["iv_age"] == 24
 
 
-def test_elbow_bounds_are_the_shifted_interval_clipped_and_the_sigmoid() -> None:
+def test_elbow_bounds_are_the_shifted_interval_clipped_and_the_sigmoid(robot) -> None:
     rng = np.random.default_rng(5)
-    cfg = qpnso.ElbowConfig(half_width_deg=50, safety_margin_deg=10)
-    params = elbow_memory.elbow_parameters(
-        cfg.half_width_rad,
-        cfg.safety_margin_rad,
-        cfg.stiffness_min,
-        cfg.stiffness_max,
-        cfg.alpha_per_rad,
-        cfg.d_rad,
-        0.1,
-        0.01,
-        10,
-    )
+    config = ControllerConfig(rom_half_width_deg=50, safety_margin_deg=10)
+    cfg = config.elbow()
+    P = tick_params(robot, config)[0]
     for _ in range(300):
         lo = rng.uniform(-4, 4)
         hi = lo + rng.uniform(0.1, 6.0)
         full = bool(rng.random() < 0.2)
-        memory = elbow_memory.elbow_memory(0.0)
-        elbow_memory.store_interval(memory, lo, hi, full, np.zeros(12))
         turns = int(rng.integers(-3, 4))
         ns = rng.uniform(lo, hi) + 2 * np.pi * turns
         ns0 = ns + rng.uniform(-1.5, 1.5)
+        memory = M.new_memory(7, ns, ns0, np.eye(3), np.zeros(3))
+        M.store_interval(memory, lo, hi, full, np.eye(3), np.zeros(3))
         interval = (
             qpnso.Interval(ns - np.pi, ns + np.pi, True)
             if full
             else qpnso.Interval(lo + 2 * np.pi * turns, hi + 2 * np.pi * turns, False)
         )
         expected = qpnso.clip_rom(ns0, cfg.half_width_rad, interval, cfg.safety_margin_rad)
-        rom_lo, rom_hi, empty, iv_lo, iv_hi, k = elbow_memory.elbow_bounds(ns, memory, ns0, params)
+        rom_lo, rom_hi, empty, iv_lo, iv_hi, k = M.elbow_bounds(memory[0], P)
         assert (iv_lo, iv_hi) == pytest.approx((interval.lo, interval.hi), abs=1e-12)
         assert (rom_lo, rom_hi, empty) == pytest.approx((expected.lo, expected.hi, expected.empty), abs=1e-12)
         span = cfg.stiffness_max - cfg.stiffness_min
         assert k == pytest.approx(span / (1 + np.exp(cfg.alpha_per_rad * (cfg.d_rad - abs(ns - ns0)))) + 10, rel=1e-12)
-    unknown = elbow_memory.elbow_bounds(1.0, elbow_memory.elbow_memory(1.0), 1.0, params)
+    unknown = M.elbow_bounds(M.new_memory(7, 1.0, 1.0, np.eye(3), np.zeros(3))[0], P)
     assert unknown[3:5] == pytest.approx((1.0 - np.pi, 1.0 + np.pi))  # no interval yet: the circle around ns
 
 
@@ -226,102 +230,189 @@ def test_answer_bits_are_the_status_flags() -> None:
     assert all(v > 0 and v & (v - 1) == 0 for v in bits.values()) and len(set(bits.values())) == len(bits)
 
 
-# ------------------------------------------------------ compiled = general
-def test_held_tool_ticks_equal_the_general_path(robot, monkeypatch) -> None:
-    fast, slow = pair(robot)
-    hits = count_compiled(fast, monkeypatch)
-    rng = np.random.default_rng(3)
-    for _ in range(3):
-        held_both(fast, slow, robot.random_q(rng, margin=0.3), 400)
-    assert hits[0] > 1000  # the compiled path did answer
+# ------------------------------------------------------- the tick's problem
+def hand_problem(robot: qpnso.Robot, ctrl: Controller, q: np.ndarray, twist: np.ndarray, step0: np.ndarray):
+    """The ``qp`` strategy's tick problem at ``q`` built by hand from Pinocchio and the paper's formulas (the
+    previous command zero): level 1 ``J q̇ = v + K_p e − ½dt·J̇q̇`` (J̇q̇ Pinocchio's classical acceleration
+    along the damped least-squares velocity of ``v``), the bounds, and level 2 ``½‖q̇‖² + sᵀq̇`` with the soft
+    elbow row ``ξ(ROM_t − ns)``; ``step0`` the filter's previous cost step."""
+    from qpnso.control.state import PREDICTION_DAMPING
+
+    cfg, state = ctrl.config, ctrl.evaluate(q)
+    J = robot.jacobian(q)
+    pose = robot.tool_pose(q)
+    e = np.r_[ctrl.ref_position - pose.translation, pin.log3(ctrl.ref_rotation @ pose.rotation.T)]
+    v = J.T @ np.linalg.solve(J @ J.T + PREDICTION_DAMPING**2 * np.eye(6), twist)
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q, v, np.zeros(7))
+    drift = pin.getFrameClassicalAcceleration(robot.model, data, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED).vector
+    b1 = twist + cfg.pose_gain * e - 0.5 * DT * drift
+    lb = np.clip(cfg.joint_limit_gain * (robot.q_min - q), -robot.dq_max, robot.dq_max)
+    ub = np.clip(cfg.joint_limit_gain * (robot.q_max - q), -robot.dq_max, robot.dq_max)
+    N = np.eye(7) - np.linalg.pinv(J) @ J
+    step = cfg.cost_gain * ctrl.cost.gradient(q)
+    step *= min(1.0, cfg.nullspace_speed_max / np.linalg.norm(N @ step))
+    alpha = DT / cfg.cost_filter_time
+    s = step0 + alpha * (step - step0)
+    ns = reference_arm_angle(robot, q)
+    return Level(A=J, b=b1), Level(H=np.eye(7), g=s), state, ns, (lb, ub)
 
 
-def test_moving_tool_and_measured_velocity_equal_the_general_path(robot, monkeypatch) -> None:
-    fast, slow = pair(robot)
-    hits = count_compiled(fast, monkeypatch)
-    fast.reset(Q0), slow.reset(Q0)
-    q, dq = Q0.copy(), np.zeros(7)
-    for k in range(1500):
-        twist = np.array([0.05 * np.sin(k * DT * 3), 0.03, -0.02, 0.1, 0.0, -0.2 * np.cos(k * DT)])
-        a, b = fast.step(q, dq=dq, tool_twist=twist), slow.step(q, dq=dq, tool_twist=twist)
-        assert_same(a, b, tol=1e-11)
+def test_the_tick_states_the_problem_built_by_hand(robot) -> None:
+    """What a ``qp`` tick writes into its problem record, against Pinocchio: level 1, the bounds, the filtered
+    cost step, the elbow row (its gradient by central differences of the arm angle)."""
+    rng = np.random.default_rng(7)
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    for _ in range(5):
+        q = robot.random_q(rng, margin=0.4)
+        if qpnso.arm_angle_status(robot, q).status != "ok":
+            continue
+        ctrl.reset(q)
+        twist = rng.normal(size=6) * 0.02
+        step0 = ctrl.records.memory[0]["cost_step"].copy()
+        first, second, _, ns, (lb, ub) = hand_problem(robot, ctrl, q, twist, step0)  # (the reference before it moves)
+        ctrl.step(q, tool_twist=twist)
+        p = ctrl.records.problem[0]
+        np.testing.assert_allclose(p["A1"], first.A, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(p["b1"], first.b, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(p["lb"], lb, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(p["ub"], ub, rtol=0, atol=1e-12)
+        assert p["has_level2"] and p["use_H2"] and p["use_g2"] and p["m2"] == 0
+        np.testing.assert_array_equal(p["H2"], np.eye(7))
+        np.testing.assert_allclose(p["g2"], second.g, rtol=1e-9, atol=1e-12)
+        assert p["n_soft"] == 1 and p["slack_weight"] == ctrl.config.slack_weight
+        h = 1e-6
+        grad = [
+            (reference_arm_angle(robot, q + h * d) - reference_arm_angle(robot, q - h * d)) / (2 * h) for d in np.eye(7)
+        ]
+        np.testing.assert_allclose(p["soft_C"][0], grad, rtol=0, atol=1e-6)
+        r = ctrl.records.report[0]
+        assert r["ns"] == pytest.approx(ns, abs=1e-9)
+        xi = ctrl.config.elbow_gain
+        assert p["soft_l"][0] == pytest.approx(min(xi * (r["rom_lo"] - ns), ctrl.config.recovery_speed), abs=1e-8)
+        assert p["soft_u"][0] == pytest.approx(max(xi * (r["rom_hi"] - ns), -ctrl.config.recovery_speed), abs=1e-8)
+
+
+def test_every_strategy_takes_the_one_path(robot, monkeypatch) -> None:
+    """Every strategy's tick states its problem in the same record and the same solver call answers it."""
+    for name in ("qp", "damped", "fixed", "elbow-up", "gradient", "rom"):
+        ctrl = Controller(robot, ControllerConfig(strategy=name))
+        counts = count_paths(ctrl, monkeypatch)
+        ctrl.reset(Q0)
+        for _ in range(5):
+            assert ctrl.step(Q0, tool_twist=[0.01, 0, 0, 0, 0, 0]).ok
+        assert counts == {"line": 5, "cascade": 0}, name
+
+
+def run_both(robot, ticks: int, q0: np.ndarray, twist_of, **cfg) -> None:
+    """The same closed loop with the line fast path and with the general cascade only: the same commands
+    (two algorithms: a closed-form segment and an SVD null-space cascade, to the QPs' tolerances)."""
+    line = Controller(robot, ControllerConfig(**cfg))
+    cascade = Controller(robot, ControllerConfig(qp_settings=qpnso.QPSettings(line_fast_path=False), **cfg))
+    line.reset(q0), cascade.reset(q0)
+    q, dq = q0.copy(), np.zeros(7)
+    for k in range(ticks):
+        a = line.step(q, dq=dq, tool_twist=twist_of(k))
+        b = cascade.step(q, dq=dq, tool_twist=twist_of(k))
+        assert_close(a, b, 1e-8)
         dq = 0.9 * a.dq
         q = q + DT * a.dq
-    assert hits[0] > 1000
 
 
-def test_offline_tool_pose_equals_the_general_path(robot) -> None:
-    fast, slow = pair(robot)
-    fast.reset(Q0), slow.reset(Q0)
-    pose = robot.tool_pose(Q0)
-    q = Q0.copy()
-    for k in range(300):
-        target = pin.SE3(pose.rotation, pose.translation + np.array([0.0, 1e-4 * k, 0.0]))
-        a, b = fast.step(q, tool_pose=target), slow.step(q, tool_pose=target)
-        assert_same(a, b, tol=1e-11)
-        q = q + DT * a.dq
+@pytest.mark.parametrize("strategy", ["qp", "fixed", "elbow-up"])
+def test_the_line_fast_path_answers_as_the_general_cascade(robot, strategy: str) -> None:
+    def twist(k: int) -> np.ndarray:
+        return np.array([0.05 * np.sin(k * DT * 3), 0.03, -0.02, 0.1, 0.0, -0.2 * np.cos(k * DT)])
+
+    run_both(robot, 300, Q0, twist, strategy=strategy)
 
 
 def test_joint_limit_cutting_the_line_takes_the_general_cascade(robot, monkeypatch) -> None:
-    """A tool motion the bounds cannot follow: the line misses the box, the compiled path steps aside."""
-    fast, slow = pair(robot)
-    hits = count_compiled(fast, monkeypatch)
-    fast.reset(Q0), slow.reset(Q0)
-    a = fast.step(Q0, tool_twist=np.array([5.0, 0, 0, 0, 0, 0]))
-    b = slow.step(Q0, tool_twist=np.array([5.0, 0, 0, 0, 0, 0]))
-    assert hits[0] == 0 and a.status & Status.TOOL_LIMITED
-    assert_same(a, b)
+    """A tool motion the bounds cannot follow: the line misses the box, the cascade answers."""
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    counts = count_paths(ctrl, monkeypatch)
+    ctrl.reset(Q0)
+    a = ctrl.step(Q0, tool_twist=np.array([5.0, 0, 0, 0, 0, 0]))
+    assert counts == {"line": 1, "cascade": 1} and a.status & Status.TOOL_LIMITED
+    lb, ub = ctrl.records.problem[0]["lb"], ctrl.records.problem[0]["ub"]
+    assert np.all(a.dq >= lb - 1e-9) and np.all(a.dq <= ub + 1e-9)
 
 
-def test_failed_level_two_holds_the_tool_as_the_general_path_does(robot, monkeypatch) -> None:
-    fast, slow = pair(robot)
-    for ctrl in (fast, slow):
-        ctrl.reset(Q0)
-        backend = ctrl.qp._backend
-        monkeypatch.setattr(
-            backend, "solve_arrays", lambda *args: _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE")
-        )
-    failures = fast.qp.stats.failures
-    a, b = fast.step(Q0), slow.step(Q0)
+def test_a_hard_row_folds_into_the_segment(robot) -> None:
+    """A hard row on the line narrows its segment exactly (the line fast path keeps it), and the answer
+    equals the general cascade's on the same problem."""
+    from qpnso.qp.problem import new_problem, new_solution, problem_levels
+
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    ctrl.reset(Q0)
+    ctrl.step(Q0, tool_twist=[0.02, 0, 0, 0, 0, 0])
+    problem = ctrl.records.problem.copy()
+    p = problem[0]
+    x_free = ctrl.records.solution[0]["x"].copy()
+    d = np.linalg.svd(p["A1"])[2][-1]
+    p["hard_C"][0] = d
+    p["hard_l"][0], p["hard_u"][0] = -np.inf, d @ x_free - 1e-3  # the free answer is cut off by 1e-3
+    p["n_hard"] = 1
+    solution = new_solution(7)
+    assert ctrl.qp.solve_problem(problem, solution) == ""
+    x = solution[0]["x"]
+    assert d @ x <= p["hard_u"][0] + 1e-9 and d @ x == pytest.approx(p["hard_u"][0], abs=1e-7)
+    reference = ctrl.qp.solve(problem_levels(problem), p["lb"], p["ub"])
+    np.testing.assert_allclose(x, reference.x, rtol=0, atol=1e-7)
+    assert new_problem(7).dtype == problem.dtype
+
+
+def test_failed_level_two_holds_the_tool(robot, monkeypatch) -> None:
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    ctrl.reset(Q0)
+    monkeypatch.setattr(
+        ctrl.qp._backend, "solve_arrays", lambda *args: _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE")
+    )
+    failures = ctrl.qp.stats.failures
+    a = ctrl.step(Q0)
     assert a.status & Status.QP_FAILED and not a.ok
-    assert "level 2 of 2 infeasible: proxsuite TEST_FAILURE" in a.message and "tool held" in a.message
-    assert_same(a, b)
-    assert fast.qp.stats.failures == failures + 1
+    assert a.message == "QP failed (level 2 of 2 infeasible: proxsuite TEST_FAILURE): tool held, no null-space motion"
+    assert ctrl.qp.stats.failures == failures + 1
     J = robot.jacobian(Q0)
-    np.testing.assert_allclose(J @ a.dq, 0, atol=1e-12)  # tool held: level 1's least-norm answer
-    np.testing.assert_allclose(a.dq, np.linalg.pinv(J) @ (J @ a.dq), atol=1e-12)
+    b1 = ctrl.records.problem[0]["b1"]
+    np.testing.assert_allclose(a.dq, np.linalg.pinv(J) @ b1, atol=1e-12)  # level 1's least-norm answer
 
 
-def test_singular_tool_task_takes_the_damped_general_path(robot, monkeypatch) -> None:
+def test_singular_tool_task_takes_the_damped_general_cascade(robot, monkeypatch) -> None:
     """Joints 2 and 6 at zero align axes 1, 3 and 5, 7: rank 5, no line; the damped cascade answers."""
-    fast, slow = pair(robot)
-    hits = count_compiled(fast, monkeypatch)
     q0 = Q0.copy()
     q0[1] = q0[5] = 0.0
     assert np.linalg.svd(robot.jacobian(q0), compute_uv=False)[-1] < 1e-6
-    held_both(fast, slow, q0, 20)
-    assert hits[0] == 0
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    counts = count_paths(ctrl, monkeypatch)
+    ctrl.reset(q0)
+    q = q0.copy()
+    for _ in range(20):
+        cmd = ctrl.step(q)
+        assert np.all(np.isfinite(cmd.dq))
+        q = q + DT * cmd.dq
+    assert counts == {"line": 20, "cascade": 20}
 
 
-def test_non_finite_level_two_answer_holds_the_tool(robot, monkeypatch) -> None:
-    fast, slow = pair(robot)
-    for ctrl in (fast, slow):
-        ctrl.reset(Q0)
-        monkeypatch.setattr(
-            ctrl.qp._backend,
-            "solve_arrays",
-            lambda *args: _Raw(np.array([np.nan, 0.0]), LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED"),
-        )
-    a, b = fast.step(Q0), slow.step(Q0)
-    assert a.status & Status.QP_FAILED and "non-finite" in a.message and "tool held" in a.message
+@pytest.mark.parametrize(
+    "answer, words",
+    [(np.array([np.nan, 0.0]), "non-finite"), (np.zeros(3), "mis-shaped"), (np.array([1e3, 0.0]), "violated")],
+)
+def test_a_bad_level_two_answer_holds_the_tool(robot, monkeypatch, answer, words: str) -> None:
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    ctrl.reset(Q0)
+    monkeypatch.setattr(
+        ctrl.qp._backend, "solve_arrays", lambda *args: _Raw(answer, LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED")
+    )
+    a = ctrl.step(Q0)
+    assert a.status & Status.QP_FAILED and words in a.message and "tool held" in a.message
     assert np.all(np.isfinite(a.dq)) and np.all(np.isfinite(a.tau))
-    assert_same(a, b)
+    np.testing.assert_allclose(robot.jacobian(Q0) @ a.dq, ctrl.records.problem[0]["b1"], atol=1e-12)
 
 
-def test_interval_that_cannot_be_renewed_is_flagged_stale_on_both_paths(robot, monkeypatch) -> None:
-    fast, slow = pair(robot)
-    for ctrl in (fast, slow):
-        ctrl.reset(Q0)
+def test_an_interval_that_cannot_be_renewed_is_flagged_stale(robot, monkeypatch) -> None:
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    ctrl.reset(Q0)
     twist = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.0])
     q = Q0.copy()
     for k in range(40):
@@ -331,91 +422,33 @@ def test_interval_that_cannot_be_renewed_is_flagged_stale_on_both_paths(robot, m
                 raise qpnso.SingularityError("test: no interval")
 
             monkeypatch.setattr(qpnso.control.controller, "continuity_interval", singular)
-        a, b = fast.step(q, tool_twist=twist), slow.step(q, tool_twist=twist)
-        assert_same(a, b, tol=1e-11)
+        a = ctrl.step(q, tool_twist=twist)
         assert bool(a.status & Status.INTERVAL_STALE) == (k >= 10)  # renewed every 10 ticks while moving
         q = q + DT * a.dq
 
 
 def test_nan_q_is_refused_before_anything_advances(robot) -> None:
-    fast, _ = pair(robot)
-    fast.reset(Q0)
-    fast.step(Q0)
-    memory, steps, ref = fast._elbow_memory.copy(), fast.step_count, fast.ref_position.copy()
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    ctrl.reset(Q0)
+    ctrl.step(Q0)
+    memory, steps = ctrl.records.memory.copy(), ctrl.step_count
     bad = Q0.copy()
     bad[3] = np.nan
     with pytest.raises(ValueError, match=r"q"):
-        fast.step(bad, tool_twist=np.ones(6))
-    assert np.array_equal(fast._elbow_memory, memory) and fast.step_count == steps
-    assert np.array_equal(fast.ref_position, ref)
+        ctrl.step(bad, tool_twist=np.ones(6))
+    assert ctrl.records.memory.tobytes() == memory.tobytes() and ctrl.step_count == steps
 
 
-def test_mis_shaped_level_two_answer_holds_the_tool(robot, monkeypatch) -> None:
-    fast, slow = pair(robot)
-    for ctrl in (fast, slow):
-        ctrl.reset(Q0)
-        monkeypatch.setattr(
-            ctrl.qp._backend,
-            "solve_arrays",
-            lambda *args: _Raw(np.zeros(3), LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED"),
-        )
-    a, b = fast.step(Q0), slow.step(Q0)
-    assert a.status & Status.QP_FAILED and "mis-shaped" in a.message and "tool held" in a.message
-    assert_same(a, b)
-
-
-def test_compiled_tick_with_a_qpsolvers_back_end_equals_the_general_path(robot, monkeypatch) -> None:
-    """The compiled tick hands its line QP to any back end (here DAQP, exact active set)."""
-    fast, slow = pair(robot, qp_backend="daqp")
-    hits = count_compiled(fast, monkeypatch)
-    held_both(fast, slow, Q0, 200)
-    assert hits[0] == 200
-
-
-def test_strategies_other_than_qp_never_compile(robot) -> None:
-    for name in ("damped", "fixed", "gradient", "rom", "elbow-up"):
-        assert not Controller(robot, ControllerConfig(strategy=name)).compiled_tick
-    assert not Controller(robot, ControllerConfig(qp_settings=qpnso.QPSettings(line_fast_path=False))).compiled_tick
-
-
-def test_no_kernel_is_compiled_or_loaded_after_the_constructor(robot) -> None:
-    """Whatever array kind the user passes (list, strided view, read-only, tuple), the tick's kernels
-    run the versions the constructor's dry tick compiled: none is compiled or loaded mid-loop."""
-    from qpnso import linalg
-    from qpnso.qp import line
-
-    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
-    from qpnso.control import state
-    from qpnso.elbow import rom
-
-    kernels = [
-        tick.qp_tick,
-        tick.qp_tick_answer,
-        tick.qp_command,
-        elbow_memory.arm_angle_singular,
-        tick.limits_status,
-        elbow_memory.max_abs_difference,
-        elbow_memory.elbow_advance,
-        elbow_memory.elbow_bounds,
-        state.state_views,
-        rom.clipped_bounds,
-        linalg.least_norm_line,
-        line.task_line,
-        line.least_norm_point,
-        line.checked_line_answer,
-    ]
-    before = [len(k.signatures) for k in kernels]
-    ctrl.reset(Q0)
-    wide = np.tile(Q0[:, None], (1, 3))  # a column of it is a strided view
-    frozen = Q0.copy()
-    frozen.flags.writeable = False
-    twist = np.zeros((6, 2))[:, 0]
-    for q in (list(Q0), wide[:, 1], frozen, tuple(Q0), Q0):
-        cmd = ctrl.step(q, dq=np.zeros((7, 2))[:, 1], tool_twist=twist)
-        assert np.all(np.isfinite(cmd.dq))
-    pose = robot.tool_pose(Q0)
-    ctrl.step(Q0, tool_pose=pose)
-    assert [len(k.signatures) for k in kernels] == before
+def test_a_qpsolvers_back_end_answers_as_proxsuite(robot) -> None:
+    """The line's level-2 QP handed to another back end (DAQP, exact active set): the same commands, to the
+    tie-break μ = 1e-7 that the qpsolvers back ends get (relative 1e-7 of q̇)."""
+    a, b = Controller(robot, ControllerConfig(qp_backend="daqp")), Controller(robot, ControllerConfig())
+    a.reset(Q0), b.reset(Q0)
+    q = Q0.copy()
+    for _ in range(200):
+        x, y = a.step(q), b.step(q)
+        assert_close(x, y, 2e-7 * np.abs(y.dq).max())
+        q = q + DT * x.dq
 
 
 def _kernel_signatures() -> dict[str, int]:

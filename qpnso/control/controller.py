@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +39,7 @@ from qpnso.control.tick import (
     TICK_NOT_FINITE,
     TICK_Q_REFUSED,
     TICK_STATE_NOT_FINITE,
+    Report,
     begin_tick,
     command_dtype,
     finish_tick,
@@ -53,10 +53,6 @@ from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
 from qpnso.qp import HierarchicalQP
 from qpnso.qp.problem import STOPPED, new_problem, new_solution
-
-
-Report = namedtuple("Report", report_dtype().names)  # type: ignore[misc]
-"""A tick's report record read into Python (:func:`qpnso.control.tick.report_dtype`'s fields)."""
 
 
 @dataclass(slots=True)
@@ -136,6 +132,7 @@ class Controller:
         q = self.robot.sample_configuration()
         self.reset(q)
         self.step(q)
+        self.step(q, tool_pose=self.robot.tool_pose(q))  # (the reference's own check of q)
         limits = self.records.params[0]
         wrist_sin_min = float(limits["wrist_sin_min"])
         limits["wrist_sin_min"] = 2.0  # every arm angle singular: the dropped elbow's tick

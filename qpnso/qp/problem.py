@@ -103,7 +103,9 @@ def set_level2(problem: np.ndarray, level: Level | None) -> None:
         p["has_level2"] = 0
         return
     if level.C is not None or not (isinstance(level.weight, (int, float)) and level.weight == 1):
-        raise InputError("a strategy's level 2 is a task, a quadratic and a linear term, unweighted; rows are row kinds")
+        raise InputError(
+            "a strategy's level 2 is a task, a quadratic and a linear term, unweighted; rows are row kinds"
+        )
     p["has_level2"] = 1
     m = 0 if level.A is None else np.shape(level.A)[0]
     if m > p["A2"].shape[0]:

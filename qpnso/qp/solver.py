@@ -253,7 +253,9 @@ class HierarchicalQP:
         if isinstance(self._backend, _ProxSuiteBackend) and self.settings.box_constraints:
             return self._backend.solve_arrays(1, H, g, C, l, u, box_l, box_u)
         if qp is None:
-            qp = LevelQP(H, g, C, l, u, box_l, box_u, _NO_VECTOR, _NO_BASIS, _OWNED_0, None, C.shape[0], 0, 0)  # (a back end
+            qp = LevelQP(
+                H, g, C, l, u, box_l, box_u, _NO_VECTOR, _NO_BASIS, _OWNED_0, None, C.shape[0], 0, 0
+            )  # (a back end
             # reads H, g, the rows and the box only)
         return self._backend.solve(1, qp)
 
@@ -267,7 +269,16 @@ class HierarchicalQP:
         v = solved_vector(raw, qp.g.shape)
         if v is not None:
             code, x, worst, slack = checked_line_answer(
-                v, line.direction, line.x0, qp.box_l, qp.box_u, qp.C, qp.l, qp.u, qp.n_slack, self.settings.feasibility_tol
+                v,
+                line.direction,
+                line.x0,
+                qp.box_l,
+                qp.box_u,
+                qp.C,
+                qp.l,
+                qp.u,
+                qp.n_slack,
+                self.settings.feasibility_tol,
             )
         if code != LINE_ANSWER_OK:
             return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations, message=_refusal(raw, code, worst))

@@ -11,6 +11,7 @@ import qpnso
 from qpnso import Controller, ControllerConfig, QPSettings
 from qpnso.control.config import STRATEGIES, Status
 from qpnso.qp import HierarchicalQP, Level, LevelStatus
+from qpnso.qp.arrays import QPArrays
 from qpnso.qp.backends import active_set_solve
 
 Q1 = np.radians([10, 40, -10, -70, 20, 50, 0])
@@ -252,7 +253,8 @@ def test_no_hold_means_proxqp_every_solve() -> None:
 
 def test_active_set_solve_matches_a_closed_form() -> None:
     H, g = np.diag([2.0, 4.0]), np.array([-2.0, -8.0])  # unconstrained optimum (1, 2)
-    raw = active_set_solve(H, g, np.array([[1.0, 1.0]]), np.array([-np.inf]), np.array([2.0]), None, None)
+    empty = np.zeros(0)
+    raw = active_set_solve(QPArrays(H, g, np.array([[1.0, 1.0]]), np.array([-np.inf]), np.array([2.0]), empty, empty))
     assert raw.status is LevelStatus.SOLVED
     np.testing.assert_allclose(raw.v, [1 / 3, 5 / 3], atol=1e-12)  # on x + y = 2: 6x − 2 = 0 by hand
 

@@ -24,6 +24,7 @@ import numpy as np
 from numba import njit
 
 from qpnso.errors import SolverError
+from qpnso.qp.arrays import QPArrays
 from qpnso.qp.cascade import _NO_VECTOR, LevelQP
 from qpnso.qp.results import HQPStats, LevelStatus
 from qpnso.qp.settings import NATIVE_BACKEND, QPSettings
@@ -38,31 +39,24 @@ class _Raw:
 
 
 @njit(cache=True)
-def qp_data_finite(H, g, C, lo, hi, box_l, box_u):
-    """Whether a QP's data can be solved: ``H``, ``g``, ``C`` finite, no NaN in the bounds (±inf allowed)."""
-    for a in (H.ravel(), g, C.ravel()):
+def qp_data_finite(qp):
+    """Whether a QP's data (:class:`~qpnso.qp.arrays.QPArrays`) can be solved: ``H``, ``g``, ``C`` finite, no
+    NaN in the bounds (±inf allowed)."""
+    for a in (qp.H.ravel(), qp.g, qp.C.ravel()):
         for x in a:
             if not math.isfinite(x):
                 return False
-    for a in (lo, hi, box_l, box_u):
+    for a in (qp.l, qp.u, qp.box_l, qp.box_u):
         for x in a:
             if x != x:
                 return False
     return True
 
 
-def finite_data_raw(
-    H: np.ndarray,
-    g: np.ndarray,
-    C: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    box_l: np.ndarray | None,
-    box_u: np.ndarray | None,
-) -> _Raw | None:
+def finite_data_raw(qp: QPArrays) -> _Raw | None:
     """None when a QP's data can be solved (:func:`qp_data_finite`), else the failure to report: a NaN
     never reaches a back end (one once ran ProxQP for 1.5 M iterations, 9 s, measured)."""
-    if qp_data_finite(H, g, C, lo, hi, _NO_VECTOR if box_l is None else box_l, _NO_VECTOR if box_u is None else box_u):
+    if qp_data_finite(qp):
         return None
     return _Raw(None, LevelStatus.SOLVER_ERROR, 0, "non-finite QP data (NaN or inf in the problem)")
 
@@ -70,26 +64,15 @@ def finite_data_raw(
 _DAQP_SOLVED = (1, 2)  # DAQP's exit flags: optimal, optimal with soft constraints
 
 
-def active_set_solve(
-    H: np.ndarray,
-    g: np.ndarray,
-    C: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    box_l: np.ndarray | None,
-    box_u: np.ndarray | None,
-    iter_limit: int = 1000,
-) -> _Raw:
-    """``min ½vᵀHv + gᵀv`` s.t. ``lo ≤ C v ≤ hi`` (and the box) by DAQP, a dual active-set method:
+def active_set_solve(qp: QPArrays, iter_limit: int = 1000) -> _Raw:
+    """``min ½vᵀHv + gᵀv`` s.t. ``l ≤ C v ≤ u`` (and the box) by DAQP, a dual active-set method:
     finite termination, exact to round-off on the small QPs of a tick (about 20 µs, measured), a
     semi-definite ``H`` handled by proximal-point iterations (``eps_prox=1e-6``, to ``eta_prox=1e-12``:
     its automatic choice stalled for 5000 iterations along a flat direction that a bound cut, and its
     default 1e-6 tolerance left level 1's residual at 7e-8, both measured).  The recovery of
     :class:`_ProxSuiteBackend` when ProxQP fails (docs/qp-notes.md: ProxQP can stall on degenerate problems)."""
-    if box_l is not None:
-        upper, lower = np.concatenate([box_u, hi]), np.concatenate([box_l, lo])
-    else:
-        upper, lower = hi, lo
+    H, g, C = qp.H, qp.g, qp.C
+    upper, lower = np.concatenate([qp.box_u, qp.u]), np.concatenate([qp.box_l, qp.l])  # the box first: bounds
     try:
         x, _, flag, info = daqp.solve(
             np.ascontiguousarray(H),
@@ -162,22 +145,13 @@ class _ProxSuiteBackend:
         return obj
 
     def solve(self, k: int, qp: LevelQP) -> _Raw:
-        box = qp.box_l is not None and self._settings.box_constraints
-        C, lo, hi = (qp.C, qp.l, qp.u) if box else qp.rows_with_box()
-        return self.solve_arrays(k, qp.H, qp.g, C, lo, hi, qp.box_l if box else None, qp.box_u if box else None)
+        if qp.box_l is not None and self._settings.box_constraints:
+            return self.solve_arrays(k, qp.arrays)
+        C, lo, hi = qp.rows_with_box()
+        return self.solve_arrays(k, QPArrays(qp.H, qp.g, C, lo, hi, _NO_VECTOR, _NO_VECTOR))
 
-    def solve_arrays(
-        self,
-        k: int,
-        H: np.ndarray,
-        g: np.ndarray,
-        C: np.ndarray,
-        lo: np.ndarray,
-        hi: np.ndarray,
-        box_l: np.ndarray | None,
-        box_u: np.ndarray | None,
-    ) -> _Raw:
-        """``min ½vᵀHv + gᵀv`` s.t. ``lo ≤ C v ≤ hi`` (and ``box_l ≤ v ≤ box_u`` if given) on the
+    def solve_arrays(self, k: int, qp: QPArrays) -> _Raw:
+        """``min ½vᵀHv + gᵀv`` s.t. ``l ≤ C v ≤ u`` (and ``box_l ≤ v ≤ box_u`` if ``qp`` has a box) on the
         persistent object of level ``k`` and this shape, warm-started.
 
         The budget is in iterations, so that answers do not depend on the machine's load: ProxQP's
@@ -189,13 +163,14 @@ class _ProxSuiteBackend:
         DAQP solve itself (measured); after the hold ProxQP starts cold.  Without the fallback a failed
         warm solve is retried cold at once.  The data are finite (:func:`finite_data_raw` refuses others
         first)."""
-        box = box_l is not None
+        H, g, C, lo, hi, box_l, box_u = qp
+        box = box_l.shape[0] > 0
         key = (k, H.shape[0], C.shape[0], box)
         entry = self._qps.get(key)
         if entry is not None and entry.held:
             entry.held -= 1
             self._stats.active_set_fallbacks += 1
-            raw = active_set_solve(H, g, C, lo, hi, box_l, box_u, self._settings.max_iter_active_set)
+            raw = active_set_solve(qp, self._settings.max_iter_active_set)
             if raw.status is LevelStatus.SOLVED:
                 return raw
             entry.held, entry.cold_next = 0, True  # DAQP failed too: ProxQP tries, cold
@@ -235,7 +210,7 @@ class _ProxSuiteBackend:
             return _Raw(None, status, info.iter, message)
         self._stats.active_set_fallbacks += 1
         entry.held = self._settings.active_set_hold
-        raw = active_set_solve(H, g, C, lo, hi, box_l, box_u, self._settings.max_iter_active_set)
+        raw = active_set_solve(qp, self._settings.max_iter_active_set)
         raw.message = f"{message}; {raw.message}"
         return raw
 

@@ -63,14 +63,16 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 from scipy.linalg import lapack as _lapack
 
 from qpnso.linalg import matmul, matvec
+from qpnso.qp.arrays import Basis, Inherited, LevelParts, QPArrays
 from qpnso.qp.levels import Level, _LevelData, _validate_level
-from qpnso.qp.settings import QPSettings
+from qpnso.qp.settings import QPSettings, tolerance_record
 
 __all__ = ["Cascade", "LevelQP", "advance_cascade", "build_level_qp"]
 
@@ -174,6 +176,20 @@ class LevelQP:
         """Joint velocity (rad/s) of a QP solution ``v``."""
         return self.x_prev + self.d_of(v)
 
+    @property
+    def arrays(self) -> QPArrays:
+        """The QP as the back ends and kernels take it (no box: empty box arrays)."""
+        box = self.box_l is not None and self.box_u is not None
+        return QPArrays(
+            self.H,
+            self.g,
+            self.C,
+            self.l,
+            self.u,
+            self.box_l if box else _NO_VECTOR,  # type: ignore[arg-type]
+            self.box_u if box else _NO_VECTOR,  # type: ignore[arg-type]
+        )
+
     def rows_with_box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All constraints as rows ``l ≤ C v ≤ u``: the finite box entries appended as
         unit rows (for back ends without a native box); no box: ``C, l, u`` as they are."""
@@ -189,20 +205,20 @@ class LevelQP:
         )
 
 
-def _task_svd(data: _LevelData, cascade: Cascade) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _task_svd(data: _LevelData, cascade: Cascade) -> "TaskSVD":
     """The level's weighted task in z, ``W^½ A Z`` (m, r), its singular values and right singular
     vectors ``Vᵀ`` (r, r), and its residual at the higher levels' answer ``W^½(A x_prev − b)``;
     empty arrays without a task or free direction."""
     Z, r = cascade.Z, cascade.Z.shape[1]
     if data.Aw is None or r == 0:
-        return _no_rows(r), _NO_VECTOR, np.zeros((r, r)), _NO_VECTOR
+        return TaskSVD(_no_rows(r), _NO_VECTOR, np.zeros((r, r)), _NO_VECTOR)
     assert data.bw is not None  # a task has its b
     At = data.Aw if cascade.full else data.Aw @ Z
     r0 = -data.bw if cascade.depth == 0 else data.Aw @ cascade.x - data.bw
     _, sigma, vt, info = _lapack.dgesdd(At, compute_uv=1, full_matrices=1)  # np.linalg.svd, less overhead
     if info != 0:
         _, sigma, vt = np.linalg.svd(At, full_matrices=True)
-    return _c(At), sigma, _c(vt), _c(r0)
+    return TaskSVD(_c(At), sigma, _c(vt), _c(r0))
 
 
 def _c(a: np.ndarray) -> np.ndarray:
@@ -211,38 +227,31 @@ def _c(a: np.ndarray) -> np.ndarray:
     return a if a.flags.c_contiguous and a.flags.writeable else np.array(a, dtype=float, order="C")
 
 
-@njit(cache=True)
-def level_qp_arrays(
-    At,
-    sigma,
-    vt,
-    r0,
-    H,
-    g,
-    C,
-    l,
-    u,
-    n_slack,
-    slack_scale,
-    Z,
-    full,
-    x_prev,
-    moved,
-    lb,
-    ub,
-    C_inh,
-    l_inh,
-    u_inh,
-    reg,
-    rank_tol,
-    damping,
-):
-    """The arrays of :func:`build_level_qp` (absent level parts passed with zero rows; ``At`` the task
-    in z with its SVD ``sigma``, ``vt``, and ``r0`` its residual at ``x_prev``, from :func:`_task_svd`).
+class TaskSVD(NamedTuple):
+    """A level's weighted task in z, ``W^½ A Z`` (m, r), its singular values ``sigma`` and right singular
+    vectors ``vt`` (r, r), and its residual ``r0`` at the higher levels' answer (:func:`_task_svd`)."""
 
-    Returns ``H, g, C, l, u, box_l, box_u, has_box, owned_z, free_z, has_task``."""
+    At: np.ndarray
+    sigma: np.ndarray
+    vt: np.ndarray
+    r0: np.ndarray
+
+
+@njit(cache=True)
+def level_qp_arrays(task, level, basis, inherited, tol):
+    """The arrays of :func:`build_level_qp`: ``task`` a :class:`TaskSVD`, ``level`` the level's
+    :class:`~qpnso.qp.arrays.LevelParts` (its task part unused: ``task`` has it), ``basis`` and
+    ``inherited`` what the levels above leave (:class:`~qpnso.qp.arrays.Basis`,
+    :class:`~qpnso.qp.arrays.Inherited`), ``tol`` the tolerances (:func:`qpnso.qp.settings.tolerance_record`).
+
+    Returns ``(QPArrays, has_box, owned_z, free_z, has_task)``."""
+    At, sigma, vt, r0 = task
+    H, g, C, l, u = level.H, level.g, level.C, level.l, level.u
+    Z, full, x_prev, moved = basis.Z, basis.full, basis.x_prev, basis.moved
+    T = tol[0]
+    reg, rank_tol, damping = T.regularization, T.rank_tol, T.damping_threshold
     n, r = x_prev.shape[0], Z.shape[1]
-    ns = n_slack
+    ns = level.n_slack
     nv = r + ns
     Hv = np.zeros((nv, nv))
     gv = np.zeros(nv)
@@ -281,12 +290,13 @@ def level_qp_arrays(
             Hv[:r, :r] -= reg * matmul(owned_z, owned_z.T)
     for i in range(ns):
         Hv[r + i, r + i] = 1.0
+    C_inh = inherited.C
     p_inh, p_own = C_inh.shape[0], C.shape[0]
     nb = 0 if full else n
     m = p_inh + p_own + nb
     Cv = np.zeros((m, nv))
     lo, hi = np.empty(m), np.empty(m)
-    for start, Cp, lp, up in ((0, C_inh, l_inh, u_inh), (p_inh, C, l, u)):
+    for start, Cp, lp, up in ((0, C_inh, inherited.l, inherited.u), (p_inh, C, l, u)):
         p = Cp.shape[0]
         if p:
             Cv[start : start + p, :r] = Cp if full else matmul(Cp, Z)
@@ -294,17 +304,17 @@ def level_qp_arrays(
             lo[start : start + p] = lp - cx
             hi[start : start + p] = up - cx
     for i in range(ns):
-        Cv[p_inh + i, r + i] = slack_scale
+        Cv[p_inh + i, r + i] = level.slack_scale
     has_box = nb == 0
     box_l, box_u = np.full(nv, -np.inf), np.full(nv, np.inf)
     if nb:
         Cv[m - n :, :r] = Z
-        lo[m - n :] = lb - x_prev
-        hi[m - n :] = ub - x_prev
+        lo[m - n :] = inherited.lb - x_prev
+        hi[m - n :] = inherited.ub - x_prev
     else:  # Z the identity: the bounds as a box on z (free slacks)
-        box_l[:n] = lb - x_prev
-        box_u[:n] = ub - x_prev
-    return Hv, gv, Cv, lo, hi, box_l, box_u, has_box, owned_z, free_z, has_task
+        box_l[:n] = inherited.lb - x_prev
+        box_u[:n] = inherited.ub - x_prev
+    return QPArrays(Hv, gv, Cv, lo, hi, box_l, box_u), has_box, owned_z, free_z, has_task
 
 
 def build_level_qp(level: Level | _LevelData, cascade: Cascade, settings: QPSettings = QPSettings()) -> LevelQP:
@@ -318,32 +328,14 @@ def build_level_qp(level: Level | _LevelData, cascade: Cascade, settings: QPSett
     n = cascade.x.shape[0]
     data = level if isinstance(level, _LevelData) else _validate_level(level, n, "level")
     ns = data.n_slack
-    At, sigma, vt, r0 = _task_svd(data, cascade)
-    H, g, C, lo, hi, box_l, box_u, has_box, owned_z, free_z, has_task = level_qp_arrays(
-        At,
-        sigma,
-        vt,
-        r0,
-        _no_rows(n) if data.H is None else _c(data.H),
-        _NO_VECTOR if data.g is None else _c(data.g),
-        _no_rows(n) if data.C is None else _c(data.C),
-        _NO_VECTOR if data.l is None else _c(data.l),
-        _NO_VECTOR if data.u is None else _c(data.u),
-        ns,
-        1.0 / math.sqrt(2.0 * data.rho) if ns and data.rho is not None else 0.0,  # (ns > 0: rho is set)
-        _c(cascade.Z),
-        cascade.full,
-        _c(cascade.x),
-        cascade.depth > 0,
-        _c(cascade.lb),
-        _c(cascade.ub),
-        _c(cascade.C),
-        _c(cascade.l),
-        _c(cascade.u),
-        settings.regularization or 0.0,
-        settings.rank_tol,
-        settings.damping_threshold,
+    qp, has_box, owned_z, free_z, has_task = level_qp_arrays(
+        _task_svd(data, cascade),
+        level_parts(data, n),
+        Basis(_c(cascade.x), _c(cascade.Z), cascade.full, cascade.depth > 0),
+        Inherited(_c(cascade.lb), _c(cascade.ub), _c(cascade.C), _c(cascade.l), _c(cascade.u)),
+        tolerance_record(settings),
     )
+    H, g, C, lo, hi, box_l, box_u = qp
     return LevelQP(
         H,
         g,
@@ -460,16 +452,18 @@ def _pass_down(lo: np.ndarray, value: np.ndarray, hi: np.ndarray, tol: float) ->
 
 
 @njit(cache=True)
-def level_answer(v, Z, identity, has_box, box_l, box_u, C, l, u, slack_start, n_slack, x_prev):
-    """A level QP's answer ``v = [z; σ]`` checked: ``x = x_prev + Z z`` (``identity``: ``Z`` is I), the
-    worst violation of the box on z and of the hard rows (rows taken without σ; the bound rows, if
-    any, are ``Z z`` against ``lb − x_prev``), and each soft row's violation (its slack)."""
+def level_answer(v, basis, qp, slack_start, n_slack):
+    """A level QP's answer ``v = [z; σ]`` checked: ``x = x_prev + Z z`` (``basis.full``: ``Z`` is I), the
+    worst violation of the box on z (if ``qp`` has one) and of the hard rows (rows taken without σ; the
+    bound rows, if any, are ``Z z`` against ``lb − x_prev``), and each soft row's violation (its slack:
+    rows ``slack_start`` … ``slack_start + n_slack − 1``)."""
+    Z, C, l, u = basis.Z, qp.C, qp.l, qp.u
     r = Z.shape[1]
     z = v[:r]
     worst = 0.0
-    if has_box:
+    if qp.box_l.shape[0]:
         for i in range(r):
-            worst = max(worst, box_l[i] - z[i], z[i] - box_u[i])
+            worst = max(worst, qp.box_l[i] - z[i], z[i] - qp.box_u[i])
     slack = np.zeros(n_slack)
     for i in range(C.shape[0]):
         row = 0.0
@@ -480,5 +474,21 @@ def level_answer(v, Z, identity, has_box, box_l, box_u, C, l, u, slack_start, n_
             slack[i - slack_start] = max(violation, 0.0)
         else:
             worst = max(worst, violation)
-    d = z.copy() if identity else matvec(Z, z)
-    return x_prev + d, worst, slack
+    d = z.copy() if basis.full else matvec(Z, z)
+    return basis.x_prev + d, worst, slack
+
+
+def level_parts(data: _LevelData, n: int) -> LevelParts:
+    """A validated level's parts as the kernels take them (absent parts with zero rows; C-contiguous)."""
+    ns = data.n_slack
+    return LevelParts(
+        _no_rows(n) if data.Aw is None else _c(data.Aw),
+        _NO_VECTOR if data.bw is None else _c(data.bw),
+        _no_rows(n) if data.H is None else _c(data.H),
+        _NO_VECTOR if data.g is None else _c(data.g),
+        _no_rows(n) if data.C is None else _c(data.C),
+        _NO_VECTOR if data.l is None else _c(data.l),
+        _NO_VECTOR if data.u is None else _c(data.u),
+        ns,
+        1.0 / math.sqrt(2.0 * data.rho) if ns and data.rho is not None else 0.0,  # (ns > 0: rho is set)
+    )

@@ -31,8 +31,9 @@ import numpy as np
 from numba import njit
 
 from qpnso.linalg import dot, least_norm_line, matvec
+from qpnso.qp.arrays import Basis, LevelParts, QPArrays, Segment
 from qpnso.qp.backends import qp_data_finite
-from qpnso.qp.cascade import _NO_VECTOR, LevelQP, _no_rows, level_answer
+from qpnso.qp.cascade import LevelQP, level_answer, level_parts
 from qpnso.qp.levels import _LevelData
 from qpnso.qp.settings import QPSettings
 
@@ -126,29 +127,33 @@ def _task_line(data: _LevelData, lb: np.ndarray, ub: np.ndarray, settings: QPSet
 
 
 @njit(cache=True)
-def line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale, reg, rank_tol, damping):
-    """The arrays of :func:`_line_level_qp` (absent level parts passed with zero rows).
+def line_qp_arrays(segment, level, tol):
+    """The QP of a level (:class:`~qpnso.qp.arrays.LevelParts`) restricted to the line ``x = x0 + t·d`` of
+    ``segment``, in ``v = [t; σ]``: :func:`build_level_qp`'s with ``Z = d`` in one dimension.
 
-    Cost ``‖A x − b‖² + ½xᵀHx + gᵀx`` at ``x = x0 + t·d``: curvature and slope in ``t``
-    with the damping and tie-break of :func:`level_qp_arrays` / :func:`build_level_qp` in one
-    dimension; rows ``l − C x0 ≤ (C d) t + slack_scale·σ ≤ u − C x0``; box ``[t_lo, t_hi]`` on
-    ``t``, free slacks.  Returns ``H, g, C, l, u, box_l, box_u`` and whether the task owns ``d``."""
+    Cost ``‖A x − b‖² + ½xᵀHx + gᵀx``: curvature and slope in ``t`` with the damping and tie-break of
+    :func:`~qpnso.qp.cascade.level_qp_arrays` (``tol``: :func:`qpnso.qp.settings.tolerance_record`); rows
+    ``l − C x0 ≤ (C d) t + slack_scale·σ ≤ u − C x0``; box ``[t_lo, t_hi]`` on ``t``, free slacks.
+    Returns the :class:`~qpnso.qp.arrays.QPArrays` and whether the task owns ``d``."""
+    x0, d = segment.x0, segment.d
+    A, H, g, C = level.A, level.H, level.g, level.C
+    T = tol[0]
     curvature, slope, owned = 0.0, 0.0, False
     if A.shape[0]:
         ad = matvec(A, d)
         s2 = dot(ad, ad)
-        slope += 2.0 * dot(ad, matvec(A, x0) - b)
-        if np.sqrt(s2) > rank_tol * max(1.0, np.sqrt(s2)):
-            curvature, owned = 2.0 * max(s2, damping * damping), True
+        slope += 2.0 * dot(ad, matvec(A, x0) - level.b)
+        if np.sqrt(s2) > T.rank_tol * max(1.0, np.sqrt(s2)):
+            curvature, owned = 2.0 * max(s2, T.damping_threshold**2), True
     if H.shape[0]:
         hd = matvec(H, d)
         curvature += dot(d, hd)
         slope += dot(hd, x0)
     if g.shape[0]:
         slope += dot(d, g)
-    if reg > 0.0 and not owned:
-        curvature += reg
-    nv, p = 1 + n_slack, C.shape[0]
+    if T.regularization > 0.0 and not owned:
+        curvature += T.regularization
+    nv, p = 1 + level.n_slack, C.shape[0]
     Hq = np.eye(nv)
     Hq[0, 0] = curvature
     gq = np.zeros(nv)
@@ -161,38 +166,22 @@ def line_qp_arrays(d, x0, t_lo, t_hi, A, b, H, g, C, l, u, n_slack, slack_scale,
             cd += C[i, j] * d[j]
             cx += C[i, j] * x0[j]
         Cq[i, 0] = cd
-        lq[i], uq[i] = l[i] - cx, u[i] - cx
-        if i < n_slack:
-            Cq[i, 1 + i] = slack_scale
+        lq[i], uq[i] = level.l[i] - cx, level.u[i] - cx
+        if i < level.n_slack:
+            Cq[i, 1 + i] = level.slack_scale
     box_l, box_u = np.full(nv, -np.inf), np.full(nv, np.inf)
-    box_l[0], box_u[0] = t_lo, t_hi
-    return Hq, gq, Cq, lq, uq, box_l, box_u, owned
+    box_l[0], box_u[0] = segment.t_lo, segment.t_hi
+    return QPArrays(Hq, gq, Cq, lq, uq, box_l, box_u), owned
 
 
-def _line_level_qp(data: _LevelData, line: _Line, settings: QPSettings) -> LevelQP:
+def _line_level_qp(data: _LevelData, line: _Line, tol: np.ndarray) -> LevelQP:
     """The QP of a level restricted to ``x = x0 + t·direction``: :func:`build_level_qp` with
-    ``Z`` the line's direction (same damping and tie-break), the bounds folded into a box on ``t``."""
+    ``Z`` the line's direction (same damping and tie-break), the bounds folded into a box on ``t``;
+    ``tol`` the solver's tolerances (:func:`qpnso.qp.settings.tolerance_record`)."""
     d = line.direction
-    n = d.shape[0]
     ns = data.n_slack
-    H, g, C, lo, hi, box_l, box_u, owned = line_qp_arrays(
-        d,
-        line.x0,
-        line.t_lo,
-        line.t_hi,
-        _no_rows(n) if data.Aw is None else data.Aw,
-        _NO_VECTOR if data.bw is None else data.bw,
-        _no_rows(n) if data.H is None else data.H,
-        _NO_VECTOR if data.g is None else data.g,
-        _no_rows(n) if data.C is None else data.C,
-        _NO_VECTOR if data.l is None else data.l,
-        _NO_VECTOR if data.u is None else data.u,
-        ns,
-        1.0 / math.sqrt(2.0 * data.rho) if ns and data.rho is not None else 0.0,  # (ns > 0: rho is set)
-        settings.regularization or 0.0,
-        settings.rank_tol,
-        settings.damping_threshold,
-    )
+    qp, owned = line_qp_arrays(Segment(line.x0, d, line.t_lo, line.t_hi), level_parts(data, d.shape[0]), tol)
+    H, g, C, lo, hi, box_l, box_u = qp
     return LevelQP(H, g, C, lo, hi, box_l, box_u, line.x0, d[:, None], _OWNED_1 if owned else _OWNED_0, None, ns, 0, 0)
 
 
@@ -200,15 +189,17 @@ LINE_ANSWER_OK, LINE_ANSWER_NOT_FINITE, LINE_ANSWER_VIOLATED = 0, 1, 2
 
 
 @njit(cache=True)
-def checked_line_answer(v, d, x0, box_l, box_u, C, l, u, n_slack, tol):
-    """``(code, x, worst, slack)`` of :func:`level_answer` on the line (``Z = d``, box on ``t``), judged:
-    :data:`LINE_ANSWER_NOT_FINITE` when ``t`` (all that ``x`` depends on) is not finite,
-    :data:`LINE_ANSWER_VIOLATED` when the box or a hard row is violated by more than ``tol``, else
-    :data:`LINE_ANSWER_OK`."""
+def checked_line_answer(v, segment, qp, n_slack, tol):
+    """``(code, x, worst, slack)`` of :func:`level_answer` on the line of ``segment`` (``Z = d``, the box on
+    ``t`` of ``qp``), judged: :data:`LINE_ANSWER_NOT_FINITE` when ``t`` (all that ``x`` depends on) is not
+    finite, :data:`LINE_ANSWER_VIOLATED` when the box or a hard row is violated by more than
+    ``tol``'s ``feasibility_tol``, else :data:`LINE_ANSWER_OK`."""
+    x0, d = segment.x0, segment.d
     if not math.isfinite(v[0]):
         return LINE_ANSWER_NOT_FINITE, x0.copy(), math.inf, np.zeros(n_slack)
-    x, worst, slack = level_answer(v, d.reshape(d.shape[0], 1), False, True, box_l, box_u, C, l, u, 0, n_slack, x0)
-    return (LINE_ANSWER_OK if worst <= tol else LINE_ANSWER_VIOLATED), x, worst, slack
+    basis = Basis(x0, d.reshape(d.shape[0], 1), False, True)
+    x, worst, slack = level_answer(v, basis, qp, 0, n_slack)
+    return (LINE_ANSWER_OK if worst <= tol[0].feasibility_tol else LINE_ANSWER_VIOLATED), x, worst, slack
 
 
 def line_dtype(n: int, soft_rows: int) -> np.dtype:
@@ -240,7 +231,7 @@ def line_dtype(n: int, soft_rows: int) -> np.dtype:
 @njit(cache=True)
 def line_setup(problem, tol, line):
     """Level 1 of a tick's problem (:mod:`qpnso.qp.problem`) in closed form, and level 2's QP on its line,
-    into ``line`` (:func:`line_dtype`); ``tol`` the solver's tolerances (:meth:`QPSettings.record`).
+    into ``line`` (:func:`line_dtype`); ``tol`` the solver's tolerances (:func:`qpnso.qp.settings.tolerance_record`).
 
     Level 1's exact solutions within the bounds (:func:`task_line`) and the hard rows (:func:`fold_rows`),
     their least-norm point ``x1``; level 2 (task, quadratic, linear term, soft rows with the slack
@@ -261,11 +252,7 @@ def line_setup(problem, tol, line):
     if not pb.has_level2:
         return LINE_OK
     n, m, p = d.shape[0], pb.m2, pb.n_soft
-    H, g, C, lo, hi, box_l, box_u, _ = line_qp_arrays(
-        d,
-        x0,
-        t_lo,
-        t_hi,
+    level = LevelParts(
         pb.A2[:m],
         pb.b2[:m],
         pb.H2[: n if pb.use_H2 else 0],
@@ -275,12 +262,11 @@ def line_setup(problem, tol, line):
         pb.soft_u[:p],
         p,
         1.0 / math.sqrt(2.0 * pb.slack_weight) if p else 0.0,
-        T.regularization,
-        T.rank_tol,
-        T.damping_threshold,
     )
-    if not qp_data_finite(H, g, C, lo, hi, box_l, box_u):
+    qp, _ = line_qp_arrays(Segment(x0, d, t_lo, t_hi), level, tol)
+    if not qp_data_finite(qp):
         return LINE_NOT_FINITE
+    H, g, C, lo, hi, box_l, box_u = qp
     nv = p + 1
     L.nv, L.p = nv, p
     L.H[:nv, :nv], L.g[:nv], L.C[:p, :nv], L.l[:p], L.u[:p] = H, g, C, lo, hi
@@ -305,9 +291,8 @@ def line_answer(v, problem, line, tol, solution):
     if nv == 0:
         S.x[:], S.outcome = L.x1, 0
         return LINE_ANSWER_OK
-    code, x, worst, slack = checked_line_answer(
-        v, L.d, L.x0, L.box_l[:nv], L.box_u[:nv], L.C[:p, :nv], L.l[:p], L.u[:p], p, tol[0].feasibility_tol
-    )
+    qp = QPArrays(L.H[:nv, :nv], L.g[:nv], L.C[:p, :nv], L.l[:p], L.u[:p], L.box_l[:nv], L.box_u[:nv])
+    code, x, worst, slack = checked_line_answer(v, Segment(L.x0, L.d, L.t_lo, L.t_hi), qp, p, tol)
     if code != LINE_ANSWER_OK:
         S.violation = worst
         return code

@@ -20,6 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from qpnso.errors import ConfigError, InputError
+from qpnso.qp.arrays import Basis, QPArrays, Segment
 from qpnso.qp.backends import _make_backend, _ProxSuiteBackend, _Raw, active_set_solve, finite_data_raw, solved_vector
 from qpnso.qp.cascade import (
     _NO_VECTOR,
@@ -85,7 +86,7 @@ class HierarchicalQP:
         self._tol = tolerance_record(self.settings)
         self._line = np.zeros(0)  # line_setup's record, made for the problems of one record type
         self._line_for: np.dtype | None = None
-        self._line_views: dict[tuple[int, int], tuple] = {}
+        self._line_views: dict[tuple[int, int], QPArrays] = {}
 
     def solve(
         self,
@@ -173,7 +174,7 @@ class HierarchicalQP:
         n = cascade.x.shape[0]
         data = _LevelData(None, None, None, None, _eye(n), None, None, None, None, None)
         qp = build_level_qp(data, cascade, self.settings)
-        raw = active_set_solve(qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, self.settings.max_iter_active_set)
+        raw = active_set_solve(qp.arrays, self.settings.max_iter_active_set)
         result = self._check(data, qp, raw)
         return result.x if result.ok and result.x is not None else cascade.x  # (solved: x is set)
 
@@ -225,11 +226,9 @@ class HierarchicalQP:
         if len(data) == 1:
             return [first]
         level = data[1]
-        qp = _line_level_qp(level, line, self.settings)
-        assert qp.box_l is not None and qp.box_u is not None  # the line's box on t
-        raw = finite_data_raw(qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u) or self._line_raw(
-            qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u, qp
-        )
+        qp = _line_level_qp(level, line, self._tol)
+        arrays = qp.arrays
+        raw = finite_data_raw(arrays) or self._line_raw(arrays, qp)
         second = self._line_result(raw, qp, line)
         if second.ok:
             assert second.x is not None  # a solved level has its x
@@ -237,49 +236,27 @@ class HierarchicalQP:
         second.solve_time_s = time.perf_counter() - t2
         return [first, second]
 
-    def _line_raw(
-        self,
-        H: np.ndarray,
-        g: np.ndarray,
-        C: np.ndarray,
-        l: np.ndarray,
-        u: np.ndarray,
-        box_l: np.ndarray,
-        box_u: np.ndarray,
-        qp: LevelQP | None = None,
-    ) -> _Raw:
+    def _line_raw(self, qp: QPArrays, level_qp: LevelQP | None = None) -> _Raw:
         """The back end's answer to a line's level 2 (``v = [t; σ]``) on its persistent level-2 object,
-        unchecked; ``qp`` the same QP as a :class:`LevelQP` for a back end without a native box."""
+        unchecked; ``level_qp`` the same QP as a :class:`LevelQP` for a back end without a native box."""
         if isinstance(self._backend, _ProxSuiteBackend) and self.settings.box_constraints:
-            return self._backend.solve_arrays(1, H, g, C, l, u, box_l, box_u)
-        if qp is None:
-            qp = LevelQP(
-                H, g, C, l, u, box_l, box_u, _NO_VECTOR, _NO_BASIS, _OWNED_0, None, C.shape[0], 0, 0
-            )  # (a back end
-            # reads H, g, the rows and the box only)
-        return self._backend.solve(1, qp)
+            return self._backend.solve_arrays(1, qp)
+        if level_qp is None:
+            H, g, C, l, u, box_l, box_u = qp
+            level_qp = LevelQP(H, g, C, l, u, box_l, box_u, _NO_VECTOR, _NO_BASIS, _OWNED_0, None, C.shape[0], 0, 0)
+            # (a back end reads H, g, the rows and the box only)
+        return self._backend.solve(1, level_qp)
 
     def _line_result(self, raw: _Raw, qp: LevelQP, line: _Line) -> LevelResult:
         """A raw line answer judged (:func:`checked_line_answer`: box on ``t`` and hard rows within
         ``feasibility_tol``) with the soft rows' slack."""
         if raw.status is not LevelStatus.SOLVED:
             return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
-        assert qp.box_l is not None and qp.box_u is not None  # the line's box on t
         code, worst = LINE_ANSWER_NOT_FINITE, math.inf
         v = solved_vector(raw, qp.g.shape)
         if v is not None:
-            code, x, worst, slack = checked_line_answer(
-                v,
-                line.direction,
-                line.x0,
-                qp.box_l,
-                qp.box_u,
-                qp.C,
-                qp.l,
-                qp.u,
-                qp.n_slack,
-                self.settings.feasibility_tol,
-            )
+            segment = Segment(line.x0, line.direction, line.t_lo, line.t_hi)
+            code, x, worst, slack = checked_line_answer(v, segment, qp.arrays, qp.n_slack, self._tol)
         if code != LINE_ANSWER_OK:
             return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations, message=_refusal(raw, code, worst))
         return LevelResult(
@@ -304,7 +281,7 @@ class HierarchicalQP:
         if code == LINE_NOT_FINITE:
             raw = _Raw(None, LevelStatus.SOLVER_ERROR, 0, "non-finite QP data (NaN or inf in the problem)")
         elif nv:
-            raw = self._line_raw(*self._line_arrays(line, nv, int(L["p"])))
+            raw = self._line_raw(self._line_arrays(line, nv, int(L["p"])))
         else:
             raw = _Raw(_NO_VECTOR, LevelStatus.SOLVED, 0, "")
         v = solved_vector(raw, (nv,)) if code == LINE_OK else None
@@ -326,13 +303,12 @@ class HierarchicalQP:
             self._line_for, self._line_views = problem.dtype, {}
         return self._line
 
-    def _line_arrays(self, line: np.ndarray, nv: int, p: int) -> tuple:
-        """``H, g, C, l, u, box_l, box_u`` of the line's level-2 QP: views of ``line`` of the QP's shape
-        (made once per shape)."""
+    def _line_arrays(self, line: np.ndarray, nv: int, p: int) -> QPArrays:
+        """The line's level-2 QP as views of ``line`` of the QP's shape (made once per shape)."""
         views = self._line_views.get((nv, p))
         if views is None:
             L = line[0]
-            views = self._line_views[(nv, p)] = (
+            views = self._line_views[(nv, p)] = QPArrays(
                 L["H"][:nv, :nv],
                 L["g"][:nv],
                 L["C"][:p, :nv],
@@ -369,7 +345,7 @@ class HierarchicalQP:
         if qp.H.shape[0] == 0 or qp.r == 0:  # nothing left to choose: x = x_prev, slack as it falls
             raw = _Raw(np.zeros(qp.H.shape[0]), LevelStatus.SOLVED, 0, "no free direction left")
         else:
-            raw = finite_data_raw(qp.H, qp.g, qp.C, qp.l, qp.u, qp.box_l, qp.box_u) or self._backend.solve(k, qp)
+            raw = finite_data_raw(qp.arrays) or self._backend.solve(k, qp)
         result = self._check(level, qp, raw)
         result.solve_time_s = time.perf_counter() - t_level
         return result
@@ -402,21 +378,8 @@ class HierarchicalQP:
                 iterations=raw.iterations,
                 message=f"{raw.message}: non-finite or mis-shaped solution",
             )
-        box = qp.box_l is not None
-        x, worst, slack = level_answer(
-            _c(v),
-            _c(qp.Z),
-            qp.r == qp.Z.shape[0],
-            box,
-            qp.box_l if box else _NO_VECTOR,
-            qp.box_u if box else _NO_VECTOR,
-            qp.C,
-            qp.l,
-            qp.u,
-            qp.slack_start,
-            qp.n_slack,
-            _c(qp.x_prev),
-        )
+        basis = Basis(_c(qp.x_prev), _c(qp.Z), qp.r == qp.Z.shape[0], True)
+        x, worst, slack = level_answer(_c(v), basis, qp.arrays, qp.slack_start, qp.n_slack)
         if not worst <= self.settings.feasibility_tol:
             status = LevelStatus.INFEASIBLE if qp.r == 0 else LevelStatus.INACCURATE
             return LevelResult(

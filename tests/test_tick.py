@@ -144,8 +144,7 @@ def test_finish_tick_is_gravity_plus_the_projected_impedance(robot) -> None:
     dq, dq_meas = rng.normal(size=7) * 0.1, rng.normal(size=7) * 0.1
     rec.solution[0]["x"], rec.solution[0]["outcome"] = dq, 0
     K = float(rec.report[0]["stiffness"])
-    state = rec.state.copy()
-    tick.finish_tick(q, dq_meas, state, rec.params, rec.solution, rec.report, rec.command)
+    tick.finish_tick(q, dq_meas, rec.tick)
     J = robot.jacobian(q)
     A = pin.crba(robot.model, robot.data, q)
     A = np.triu(A) + np.triu(A, 1).T

@@ -41,28 +41,28 @@ from qpnso.control.tick import (
     TICK_STATE_NOT_FINITE,
     Report,
     begin_tick,
-    command_dtype,
     finish_tick,
     limits_status,
-    report_dtype,
     stop_tick,
+    tick_dtype,
 )
 from qpnso.elbow.intervals import continuity_interval
 from qpnso.errors import InputError, QpnsoError
 from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
 from qpnso.qp import HierarchicalQP
-from qpnso.qp.problem import STOPPED, new_problem, new_solution
+from qpnso.qp.problem import STOPPED, new_problem
 
 
 @dataclass(slots=True)
 class TickRecords:
-    """The named records a tick reads and writes, made once per controller (``memory`` anew at every
-    reset): ``params`` (:mod:`qpnso.control.params`), ``memory`` (:mod:`qpnso.control.memory`),
-    ``problem`` and ``solution`` (:mod:`qpnso.qp.problem`), ``report`` and ``command``
-    (:mod:`qpnso.control.tick`); ``state`` this tick's (:mod:`qpnso.control.state`, a view of the
-    evaluator's buffer), ``q`` and ``dq_meas`` (rad, rad/s) this tick's measurements."""
+    """The controller's tick record (:func:`qpnso.control.tick.tick_dtype`, made once; its ``memory`` anew at
+    every reset) and views of its parts, each a 1-element record: ``params`` (:mod:`qpnso.control.params`),
+    ``memory`` (:mod:`qpnso.control.memory`), ``problem`` and ``solution`` (:mod:`qpnso.qp.problem`),
+    ``report`` and ``command`` (:mod:`qpnso.control.tick`), ``state`` (:mod:`qpnso.control.state`, which
+    the CasADi function writes); ``q`` and ``dq_meas`` (rad, rad/s) this tick's measurements."""
 
+    tick: np.ndarray
     params: np.ndarray
     memory: np.ndarray
     problem: np.ndarray
@@ -104,17 +104,23 @@ class Controller:
         n = robot.nq
         self._q_shape = (n,)
         self._dq_accepted = cfg.dq_tolerance_factor * robot.dq_max  # rad/s: beyond, InputError
+        self._time_budget = cfg.solver_time_budget
         self._no_twist = np.zeros(6)  # never written (writable: a read-only array is another Numba type)
+        self.tick = tick = np.zeros(1, tick_dtype(n))
+        tick["params"] = tick_params(robot, cfg)
+        tick["problem"] = new_problem(n)
+        self.evaluate.bind(tick["state"])
         self.records = TickRecords(
-            params=tick_params(robot, cfg),
-            memory=new_memory(n, 0.0, 0.0, np.eye(3), np.zeros(3)),
-            problem=new_problem(n),
-            solution=new_solution(n),
-            report=np.zeros(1, report_dtype()),
-            command=np.zeros(1, command_dtype(n)),
-            state=np.zeros(0),
-            q=np.zeros(n),
-            dq_meas=np.zeros(n),
+            tick,
+            tick["params"],
+            tick["memory"],
+            tick["problem"],
+            tick["solution"],
+            tick["report"],
+            tick["command"],
+            tick["state"],
+            np.zeros(n),
+            np.zeros(n),
         )
         command = self.records.command
         self._command_views = (command["dq"][0], command["q_des"][0], command["tau"][0])
@@ -157,7 +163,7 @@ class Controller:
         state = self.evaluate(q)
         self.q0 = q
         centre = float(state.arm_angle if ns0 is None else ns0)
-        self.records.memory = new_memory(
+        self.records.memory[:] = new_memory(
             self.robot.nq, state.arm_angle, centre, state.tool_rotation, state.tool_position
         )
         self._dq_prev = np.zeros(self.robot.nq)
@@ -240,13 +246,13 @@ class Controller:
 
     def _tick(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float) -> Command:
         """The four steps of every tick (module docstring)."""
-        rec = self.records
-        rec.state = state = self.evaluate.record(qv, self._dq_prev, twist)
+        rec, tick = self.records, self.tick
+        state = self.evaluate.record(qv, self._dq_prev, twist)  # (rec.state: written in place)
         rec.q, rec.dq_meas = qv, dq_meas
-        code = begin_tick(qv, twist, state, rec.params, rec.memory, rec.problem, rec.report)
+        code = begin_tick(qv, twist, tick)
         if code == TICK_NEED_INTERVAL:
             self._update_interval(qv, state)
-            code = begin_tick(qv, twist, state, rec.params, rec.memory, rec.problem, rec.report)
+            code = begin_tick(qv, twist, tick)
         if code == TICK_NOT_FINITE or code == TICK_Q_REFUSED:
             self._refuse_q(qv)  # raises, naming the entries or the joint
         if code == TICK_STATE_NOT_FINITE:
@@ -254,9 +260,9 @@ class Controller:
             return self._stop(qv, state[0]["g"].copy(), bits, t0, "the arm's state is not finite")
         self.strategy.fill(rec)
         t1 = time.perf_counter()
-        why = self.qp.solve_problem(rec.problem, rec.solution, self.config.solver_time_budget)
+        why = self.qp.solve_problem(rec.problem, rec.solution, self._time_budget)
         solve_time = time.perf_counter() - t1
-        bits = finish_tick(qv, dq_meas, state, rec.params, rec.solution, rec.report, rec.command)
+        bits = finish_tick(qv, dq_meas, tick)
         message = ""
         if why:
             bits |= FLAG_QP_FAILED | (FLAG_QP_DEADLINE if rec.solution[0]["out_of_time"] else 0)
@@ -315,8 +321,7 @@ class Controller:
     def _stop(self, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float, why: str) -> Command:
         """The stop command of a tick that could not be computed (``why``): dq 0, q_des = q, τ = ``gravity``
         (g(q), saturated; zero where not finite), ``QP_FAILED`` with ``bits``."""
-        rec = self.records
-        bits |= stop_tick(qv, gravity, rec.params, rec.memory, rec.report, rec.command)
+        bits |= stop_tick(qv, gravity, self.tick)
         return self._command(bits, t0, f"{why}: joints stopped", 0.0)
 
     def _gravity_or_zero(self, qv: np.ndarray) -> np.ndarray:

@@ -127,8 +127,7 @@ class StateEvaluator:
             compile,
         )  # one input: one copy a tick
         self._zero_twist = np.zeros(6)
-        self._out: np.ndarray | None = None
-        self._record = np.zeros(1, self.dtype)
+        self.bind(np.zeros(1, self.dtype))
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until compiled code is used (benchmarks call this)."""
@@ -147,12 +146,18 @@ class StateEvaluator:
 
     def record(self, q: np.ndarray, dq: np.ndarray, twist: np.ndarray) -> np.ndarray:
         """The state at ``q`` (rad), the previous command ``dq`` (rad/s) and the tool ``twist`` (validated by
-        the caller) as a :func:`state_dtype` record (1-element array) in the evaluator's own buffer, not yet
-        made safe: read it before the next call, which overwrites it."""
-        out = self._fn.evaluate_in_place(q, dq, twist)
-        if out is not self._out:  # (the function's buffer: its record view is made once)
-            self._out, self._record = out, out.view(self.dtype)
+        the caller) as a :func:`state_dtype` record (1-element array) in the record the evaluator writes
+        (:meth:`bind`), not yet made safe: read it before the next call, which overwrites it."""
+        self._fn.evaluate_in_place(q, dq, twist)
         return self._record
+
+    def bind(self, record: np.ndarray) -> None:
+        """Evaluate into ``record`` from now on (a :func:`state_dtype` record, 1 element; e.g. a field of the
+        controller's tick record): the CasADi function writes it, no copy."""
+        if record.dtype != self.dtype or record.shape != (1,):
+            raise ValueError(f"bind needs a ({self.dtype}) record of one element")
+        self._fn.use_output(0, record.view(np.float64))
+        self._record = record
 
 
 PREDICTION_DAMPING = 1e-2

@@ -248,7 +248,7 @@ class QPStrategy(Strategy):
 
     def fill(self, tick: "TickRecords") -> None:
         """Level 2 and the impedance in one kernel: :func:`qpnso.control.tick.qp_level2`."""
-        qp_level2(tick.state, tick.params, tick.memory, tick.report, tick.problem, tick.command)
+        qp_level2(tick.tick)
 
 
 _STRATEGIES = {cls.name: cls for cls in (Damped, FixedPosture, ElbowUp, Gradient, RomModulation, QPStrategy)}

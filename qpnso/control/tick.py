@@ -37,10 +37,18 @@ from qpnso.control.flags import (
     FLAG_TOOL_LIMITED,
     FLAG_TORQUE_SATURATED,
 )
-from qpnso.control.memory import arm_angle_singular, elbow_advance, elbow_bounds, elbow_stiffness, interval_stale
-from qpnso.control.state import sanitize_state
+from qpnso.control.memory import (
+    arm_angle_singular,
+    elbow_advance,
+    elbow_bounds,
+    elbow_stiffness,
+    interval_stale,
+    memory_dtype,
+)
+from qpnso.control.params import params_dtype
+from qpnso.control.state import sanitize_state, state_dtype
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, nullspace_part
-from qpnso.qp.problem import SOLVED
+from qpnso.qp.problem import SOLVED, problem_dtype, solution_dtype
 
 LOG3_NEAR_PI = 0.75 * math.pi
 """rad: above this angle :func:`pose_error` takes the rotation's axis from its symmetric part (the
@@ -94,6 +102,24 @@ def command_dtype(n: int) -> np.dtype:
     f8 = np.float64
     vectors = [(name, f8, n) for name in ("dq", "q_des", "tau", "spring")]
     return np.dtype(vectors + [("stiffness_dt", f8), ("damping", f8), ("damp_cmd", f8)])
+
+
+def tick_dtype(n: int) -> np.dtype:
+    """The one record a tick reads and writes, for ``n`` joints: the arm's ``state``
+    (:mod:`qpnso.control.state`, written by CasADi in place), the ``params`` (:mod:`qpnso.control.params`), the
+    ``memory`` across ticks (:mod:`qpnso.control.memory`), the ``problem`` and its ``solution``
+    (:mod:`qpnso.qp.problem`), the ``report`` and the ``command``."""
+    return np.dtype(
+        [
+            ("state", state_dtype(n)),
+            ("params", params_dtype(n)),
+            ("memory", memory_dtype(n)),
+            ("problem", problem_dtype(n)),
+            ("solution", solution_dtype(n)),
+            ("report", report_dtype()),
+            ("command", command_dtype(n)),
+        ]
+    )
 
 
 @njit(cache=True)
@@ -277,10 +303,10 @@ def finish_command(q, c, gravity, P, r):
 
 
 @njit(cache=True)
-def begin_tick(q, twist, state, params, memory, problem, report):
-    """A tick up to its level 2, on records: ``state`` (:func:`qpnso.control.state.state_dtype`, made safe
-    here), ``params`` (:func:`qpnso.control.params.params_dtype`), ``memory`` (advanced), ``problem`` (level 1
-    and the bounds written; no level 2 yet) and ``report`` (:func:`report_dtype`).
+def begin_tick(q, twist, tick):
+    """A tick up to its level 2, on the tick record (:func:`tick_dtype`) at ``q`` (rad) with the tool
+    ``twist`` (m/s, rad/s): its state made safe, its memory advanced, level 1 and the bounds written into its
+    problem (no level 2 yet) and its report.
 
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`, :data:`TICK_Q_REFUSED`; outside its limits but within
     the tolerance: ``Q_OUT_OF_LIMITS``), the state (:data:`TICK_STATE_NOT_FINITE`), the elbow — dropped when
@@ -288,7 +314,8 @@ def begin_tick(q, twist, state, params, memory, problem, report):
     continuity interval is due) and bounded (:func:`qpnso.control.memory.elbow_bounds`) — then level 1's
     error (:func:`pose_error`) and target (:func:`level1_target`) and the joint bounds
     (:func:`velocity_bounds`).  Returns :data:`TICK_READY` or why not."""
-    s, P, m, pb, r = state[0], params[0], memory[0], problem[0], report[0]
+    t = tick[0]
+    s, P, m, pb, r = t.state, t.params, t.memory, t.problem, t.report
     limit = limits_status(q, P.q_check_lo, P.q_check_hi)
     if limit == 2:
         return TICK_NOT_FINITE
@@ -326,11 +353,12 @@ def begin_tick(q, twist, state, params, memory, problem, report):
 
 
 @njit(cache=True)
-def stop_tick(q, gravity, params, memory, report, command):
-    """The stop command of a tick that could not be computed, into ``command``: dq 0, q_des = q, τ =
-    ``gravity`` (g(q); saturated, zero where not finite: :func:`finish_command`); ``report`` at the memory's
-    arm angle with the elbow dropped.  Returns the bits, ``QP_FAILED`` among them."""
-    P, m, r, c = params[0], memory[0], report[0], command[0]
+def stop_tick(q, gravity, tick):
+    """The stop command of a tick that could not be computed, into the tick record's command: dq 0,
+    q_des = q, τ = ``gravity`` (g(q); saturated, zero where not finite: :func:`finish_command`); its report at
+    the memory's arm angle with the elbow dropped.  Returns the bits, ``QP_FAILED`` among them."""
+    t = tick[0]
+    P, m, r, c = t.params, t.memory, t.report, t.command
     ns = m.ns
     r.ns, r.rom_lo, r.rom_hi, r.iv_lo, r.iv_hi = ns, ns, ns, ns - math.pi, ns + math.pi
     r.stiffness, r.e_pos, r.e_rot, r.cost, r.dropped = 0.0, 0.0, 0.0, 0.0, 1
@@ -341,12 +369,13 @@ def stop_tick(q, gravity, params, memory, report, command):
 
 
 @njit(cache=True)
-def qp_level2(state, params, memory, report, problem, command):
-    """The ``qp`` strategy's level 2 (docs/method.md §7) into ``problem``: ``½‖q̇‖² + sᵀq̇`` with ``s`` the
-    cost step (:func:`cost_step`) low-passed in ``memory``, and — unless the elbow is dropped — the elbow
-    row ``∇nsᵀ q̇`` within :func:`elbow_row_bounds`, soft; and its null-space impedance
-    ``τ_null = K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)`` into ``command``'s torque law."""
-    s, P, m, r, pb, c = state[0], params[0], memory[0], report[0], problem[0], command[0]
+def qp_level2(tick):
+    """The ``qp`` strategy's level 2 (docs/method.md §7) into the tick record's problem: ``½‖q̇‖² + sᵀq̇``
+    with ``s`` the cost step (:func:`cost_step`) low-passed in its memory, and — unless the elbow is
+    dropped — the elbow row ``∇nsᵀ q̇`` within :func:`elbow_row_bounds`, soft; and its null-space impedance
+    ``τ_null = K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)`` into its command's torque law."""
+    t = tick[0]
+    s, P, m, r, pb, c = t.state, t.params, t.memory, t.report, t.problem, t.command
     c.spring[:] = 0.0
     c.stiffness_dt, c.damping, c.damp_cmd = r.stiffness * P.dt, P.joint_damping, 1.0
     m.cost_step[:] = low_pass(
@@ -363,13 +392,15 @@ def qp_level2(state, params, memory, report, problem, command):
 
 
 @njit(cache=True)
-def finish_tick(q, dq_meas, state, params, solution, report, command):
-    """A tick after its QP: the solution's ``q̇`` (or the safe one the solver left after a failure),
-    ``q_des = q + dt·q̇`` and ``τ = g(q) + Nᵀτ_null`` (N·m; ``N`` the dynamically consistent null-space
-    projector, :func:`qpnso.linalg.dynamically_consistent_projection`; ``τ_null`` the strategy's law in
-    ``command``), written into ``command``; then every tick's last step (:func:`finish_command`).  Returns
-    the status bits: ``report``'s, :func:`answer_bits` of a solved QP and the finishing ones."""
-    s, P, S, r, c = state[0], params[0], solution[0], report[0], command[0]
+def finish_tick(q, dq_meas, tick):
+    """A tick after its QP, on the tick record: its solution's ``q̇`` (or the safe one the solver left after a
+    failure), ``q_des = q + dt·q̇`` and ``τ = g(q) + Nᵀτ_null`` (N·m; ``N`` the dynamically consistent
+    null-space projector, :func:`qpnso.linalg.dynamically_consistent_projection`; ``τ_null`` the strategy's
+    law in its command, against the measured ``dq_meas``), written into its command; then every tick's last
+    step (:func:`finish_command`).  Returns the status bits: the report's, :func:`answer_bits` of a solved QP
+    and the finishing ones."""
+    t = tick[0]
+    s, P, S, r, c = t.state, t.params, t.solution, t.report, t.command
     dq = c.dq
     dq[:] = S.x
     c.q_des[:] = q + P.dt * dq

@@ -236,6 +236,15 @@ class FastFunction:
                 self._bind(ext)
                 self.compiled = True
 
+    def use_output(self, k: int, out: np.ndarray) -> None:
+        """Write output ``k`` into ``out`` from now on (a C-contiguous float64 vector of its size, e.g. a
+        field of a caller's record) instead of the function's own buffer."""
+        if out.dtype != np.float64 or out.shape != self._out[k].shape or not out.flags.c_contiguous:
+            raise ValueError(f"{self.function.name()}: output {k} needs a C-contiguous float64 {self._out[k].shape}")
+        with self._lock:
+            self._out[k] = out
+            self._buffer.set_res(k, memoryview(out))  # type: ignore[call-arg, arg-type]
+
     def wait(self, timeout: float | None = None) -> bool:
         """Block until a background compilation ends; True if compiled code is in use."""
         if self._thread is not None:

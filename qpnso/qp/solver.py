@@ -21,7 +21,7 @@ import numpy as np
 
 from qpnso.errors import ConfigError, InputError
 from qpnso.qp.arrays import Basis, QPArrays, Segment
-from qpnso.qp.backends import _make_backend, _ProxSuiteBackend, _Raw, active_set_solve, finite_data_raw, solved_vector
+from qpnso.qp.backends import _make_backend, _Raw, active_set_solve, finite_data_raw, solved_vector
 from qpnso.qp.cascade import (
     _NO_VECTOR,
     Cascade,
@@ -84,8 +84,11 @@ class HierarchicalQP:
         self.stats = HQPStats()
         self._backend = _make_backend(backend, self.settings, self.stats)
         self._tol = tolerance_record(self.settings)
-        self._line = np.zeros(0)  # line_setup's record, made for the problems of one record type
+        self._line: np.ndarray = np.zeros(0)  # line_setup's record, made for the problems of one record type
         self._line_for: np.dtype | None = None
+        self._line_nv = self._line_p = np.zeros(0, dtype=np.int64)
+        self._line_fast_path = settings.line_fast_path
+        self._box_native = backend == NATIVE_BACKEND and settings.box_constraints
         self._line_views: dict[tuple[int, int], QPArrays] = {}
 
     def solve(
@@ -239,7 +242,7 @@ class HierarchicalQP:
     def _line_raw(self, qp: QPArrays, level_qp: LevelQP | None = None) -> _Raw:
         """The back end's answer to a line's level 2 (``v = [t; σ]``) on its persistent level-2 object,
         unchecked; ``level_qp`` the same QP as a :class:`LevelQP` for a back end without a native box."""
-        if isinstance(self._backend, _ProxSuiteBackend) and self.settings.box_constraints:
+        if self._box_native:
             return self._backend.solve_arrays(1, qp)
         if level_qp is None:
             H, g, C, l, u, box_l, box_u = qp
@@ -272,16 +275,15 @@ class HierarchicalQP:
         general cascade on :func:`qpnso.qp.problem.problem_levels` (with ``time_budget``, :meth:`solve`).
         A failed level 2 leaves level 1's least-norm answer in ``solution.x`` (``TOOL_HELD``); a failed
         level 1 leaves zero (``STOPPED``)."""
-        line = self._line_record(problem)
-        code = line_setup(problem, self._tol, line) if self.settings.line_fast_path else LINE_SINGULAR
+        line = self._line if problem.dtype is self._line_for else self._line_record(problem)
+        code = line_setup(problem, self._tol, line) if self._line_fast_path else LINE_SINGULAR
         if code == LINE_SINGULAR or code == LINE_CUT:
             return self._solve_problem_levels(problem, solution, time_budget)
-        L = line[0]
-        nv = int(L["nv"])
+        nv = self._line_nv[0]  # (views of the line record's sizes: a field read of the record costs 10x)
         if code == LINE_NOT_FINITE:
             raw = _Raw(None, LevelStatus.SOLVER_ERROR, 0, "non-finite QP data (NaN or inf in the problem)")
         elif nv:
-            raw = self._line_raw(self._line_arrays(line, nv, int(L["p"])))
+            raw = self._line_raw(self._line_arrays(line, nv, self._line_p[0]))
         else:
             raw = _Raw(_NO_VECTOR, LevelStatus.SOLVED, 0, "")
         v = solved_vector(raw, (nv,)) if code == LINE_OK else None
@@ -290,7 +292,7 @@ class HierarchicalQP:
         self._count(ok)
         if ok:
             return ""
-        S = solution[0]
+        S, L = solution[0], line[0]
         S["x"], S["x1"], S["outcome"], S["out_of_time"] = L["x1"], L["x1"], TOOL_HELD, 0
         status = raw.status if raw.status is not LevelStatus.SOLVED else LevelStatus.INACCURATE
         result = LevelResult(status, message=_refusal(raw, answer, float(S["violation"])))
@@ -299,8 +301,9 @@ class HierarchicalQP:
     def _line_record(self, problem: np.ndarray) -> np.ndarray:
         """The line record for problems of this one's record type (made once: its views go to ProxSuite)."""
         if problem.dtype is not self._line_for:
-            self._line = np.zeros(1, line_dtype(self.n, problem.dtype["soft_l"].shape[0]))
-            self._line_for, self._line_views = problem.dtype, {}
+            line = np.zeros(1, line_dtype(self.n, problem.dtype["soft_l"].shape[0]))
+            self._line, self._line_for, self._line_views = line, problem.dtype, {}
+            self._line_nv, self._line_p = line["nv"], line["p"]
         return self._line
 
     def _line_arrays(self, line: np.ndarray, nv: int, p: int) -> QPArrays:

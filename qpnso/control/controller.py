@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -33,6 +34,7 @@ from qpnso.control.config import Command, ControllerConfig, ElbowState, Status, 
 from qpnso.control.flags import ELBOW_BITS, FLAG_ELBOW_DROPPED, FLAG_INTERNAL_ERROR, FLAG_QP_DEADLINE, FLAG_QP_FAILED
 from qpnso.control.memory import interval_failed, new_memory, store_interval
 from qpnso.control.params import tick_params
+from qpnso.control.rows import RowKind
 from qpnso.control.state import StateEvaluator
 from qpnso.control.tick import (
     TICK_NEED_INTERVAL,
@@ -47,7 +49,7 @@ from qpnso.control.tick import (
     tick_dtype,
 )
 from qpnso.elbow.intervals import continuity_interval
-from qpnso.errors import InputError, QpnsoError
+from qpnso.errors import ConfigError, InputError, QpnsoError
 from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
 from qpnso.qp import HierarchicalQP
@@ -87,18 +89,36 @@ class TickRecords:
         )
 
 
+def checked_rows(rows: Sequence[RowKind], robot: Robot, dt: float) -> tuple[RowKind, ...]:
+    """The row kinds, checked: each a :class:`RowKind` whose bounds are (m,) arrays with ``h_lo ≤ h_hi``,
+    no NaN, and whose damper gain γ satisfies ``0 < γ·dt ≤ 1``; :class:`ConfigError` naming the kind."""
+    out = tuple(rows)
+    for kind in out:
+        if not isinstance(kind, RowKind):
+            raise ConfigError(f"rows: {kind!r} is not a RowKind (qpnso.control.rows)")
+        lo, hi = (np.atleast_1d(np.asarray(b, dtype=float)) for b in kind.bounds(robot))
+        if lo.ndim != 1 or lo.shape != hi.shape or np.isnan(lo).any() or np.isnan(hi).any() or (lo > hi).any():
+            raise ConfigError(f"rows: {kind.name}.bounds must be two (m,) arrays with lo <= hi and no NaN")
+        if not 0 < kind.gain * dt <= 1:
+            raise ConfigError(f"rows: {kind.name}.gain = {kind.gain!r} must be in (0, 1/dt] 1/s")
+    return out
+
+
 class Controller:
     """Hierarchical-QP null-space controller of a 7-DOF arm (docs/method.md §7)."""
 
-    def __init__(self, robot: Robot, config: ControllerConfig | None = None) -> None:
+    def __init__(self, robot: Robot, config: ControllerConfig | None = None, rows: Sequence[RowKind] = ()) -> None:
+        """``rows``: constraint row kinds beyond the joint limits and the elbow (:mod:`qpnso.control.rows`),
+        kept by every strategy's tick."""
         from qpnso.control.strategies import make_strategy
 
         robot.require_redundant_arm()  # ModelError naming the arm, instead of ROM_EMPTY ticks
         self.robot = robot
         self.config = config or ControllerConfig()
         cfg = self.config
+        self.rows = checked_rows(rows, robot, cfg.dt)
         self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed, compile=cfg.compile)
-        self.evaluate = StateEvaluator(self.cost, compile=cfg.compile)
+        self.evaluate = StateEvaluator(self.cost, compile=cfg.compile, rows=self.rows)
         self.elbow_config = cfg.elbow()
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
         n = robot.nq
@@ -106,9 +126,11 @@ class Controller:
         self._dq_accepted = cfg.dq_tolerance_factor * robot.dq_max  # rad/s: beyond, InputError
         self._time_budget = cfg.solver_time_budget
         self._no_twist = np.zeros(6)  # never written (writable: a read-only array is another Numba type)
-        self.tick = tick = np.zeros(1, tick_dtype(n))
-        tick["params"] = tick_params(robot, cfg)
-        tick["problem"] = new_problem(n)
+        sizes = {kind: np.size(kind.bounds(robot)[0]) for kind in self.rows}
+        hard, soft = (sum(m for kind, m in sizes.items() if kind.soft == s) for s in (False, True))
+        self.tick = tick = np.zeros(1, tick_dtype(n, hard + soft, hard, soft))
+        tick["params"] = tick_params(robot, cfg, self.rows)
+        tick["problem"] = new_problem(n, hard, 1 + soft)
         self.evaluate.bind(tick["state"])
         self.records = TickRecords(
             tick,

@@ -5,9 +5,11 @@ from its :class:`~qpnso.control.config.ControllerConfig` and robot (:func:`tick_
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import numpy as np
 
+from qpnso.control.rows import RowKind
 from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.model.robot import Robot
 
@@ -59,14 +61,22 @@ _VECTORS = (
 )
 
 
-def params_dtype(n: int) -> np.dtype:
-    """The record type of :func:`tick_params` for ``n`` joints."""
-    return np.dtype([(name, np.float64) for name in _SCALARS] + [(name, np.float64, n) for name in _VECTORS])
+def params_dtype(n: int, rows: int = 0) -> np.dtype:
+    """The record type of :func:`tick_params` for ``n`` joints and ``rows`` rows of row kinds."""
+    m = max(rows, 1)
+    row_fields = [(name, np.float64, m) for name in ("row_lo", "row_hi", "row_gain", "row_soft")]
+    return np.dtype(
+        [(name, np.float64) for name in _SCALARS]
+        + [(name, np.float64, n) for name in _VECTORS]
+        + row_fields
+        + [("n_rows", np.int64)]
+    )
 
 
-def tick_params(robot: Robot, config) -> np.ndarray:
-    """The tick's constants for ``robot`` under ``config`` (a :class:`~qpnso.control.config.ControllerConfig`),
-    as a 1-element record array (the form Numba reads cheaply)."""
+def tick_params(robot: Robot, config, rows: Sequence[RowKind] = ()) -> np.ndarray:
+    """The tick's constants for ``robot`` under ``config`` (a :class:`~qpnso.control.config.ControllerConfig`)
+    with the row kinds ``rows`` (their bounds, gains, hard or soft; :mod:`qpnso.control.rows`), as a
+    1-element record array (the form Numba reads cheaply)."""
     from qpnso.control.strategies import filter_alpha
 
     cfg, ec = config, config.elbow()
@@ -105,7 +115,17 @@ def tick_params(robot: Robot, config) -> np.ndarray:
         dq_max=robot.dq_max,
         tau_limit=np.where(np.isfinite(limit) & (limit > 0), limit, 0.0),
     )
-    params = np.zeros(1, params_dtype(robot.nq))
+    bounds = [kind.bounds(robot) for kind in rows]
+    sizes = [np.size(lo) for lo, _ in bounds]
+    if rows:
+        values.update(
+            row_lo=np.concatenate([np.ravel(lo) for lo, _ in bounds]),
+            row_hi=np.concatenate([np.ravel(hi) for _, hi in bounds]),
+            row_gain=np.repeat([kind.gain for kind in rows], sizes),
+            row_soft=np.repeat([float(kind.soft) for kind in rows], sizes),
+            n_rows=sum(sizes),
+        )
+    params = np.zeros(1, params_dtype(robot.nq, sum(sizes)))
     for name, value in values.items():
         params[name] = value
     return params

@@ -12,22 +12,24 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import casadi as ca
 import numpy as np
 from numba import njit
 
 from qpnso.control.flags import FLAG_COST_UNDEFINED, FLAG_INTERNAL_ERROR
+from qpnso.control.rows import RowKind
 from qpnso.elbow.arm_angle import arm_angle_expression, elbow_points
 from qpnso.model.codegen import FastFunction
 from qpnso.model.costs import CostModel
 
 
-def state_dtype(n: int) -> np.dtype:
-    """The record type of the arm's state at one tick, ``n`` joints, laid out as the CasADi function of
-    :class:`StateEvaluator` writes it (so the record is a view of its output buffer).  Frames: world;
-    tool point; units rad, m, s; matrices row-major."""
-    f8 = np.float64
+def state_dtype(n: int, rows: int = 0) -> np.dtype:
+    """The record type of the arm's state at one tick, ``n`` joints and ``rows`` rows of row kinds
+    (:mod:`qpnso.control.rows`), laid out as the CasADi function of :class:`StateEvaluator` writes it (so the
+    record is a view of its output buffer).  Frames: world; tool point; units rad, m, s; matrices row-major."""
+    f8, m = np.float64, max(rows, 1)
     return np.dtype(
         [
             ("R", f8, (3, 3)),  # tool rotation, world ← tool
@@ -42,6 +44,8 @@ def state_dtype(n: int) -> np.dtype:
             ("A", f8, (n, n)),  # A(q), kg·m² (Pinocchio's crba)
             ("g", f8, n),  # g(q), N·m (Pinocchio's computeGeneralizedGravity)
             ("drift", f8, 6),  # J̇(q, q̇)q̇ at the predicted q̇ (m/s², rad/s²; world-aligned, tool point)
+            ("rows", f8, m),  # h(q) of the row kinds' rows (their units; none: one 0)
+            ("rows_gradient", f8, (m, n)),  # ∂h/∂q
         ]
     )
 
@@ -96,7 +100,7 @@ class StateEvaluator:
     the function's own buffer (the tick reads it in place), ``__call__`` a :class:`TickState` copy.
     """
 
-    def __init__(self, cost: CostModel, compile: str | None = None) -> None:
+    def __init__(self, cost: CostModel, compile: str | None = None, rows: Sequence[RowKind] = ()) -> None:
         robot = cost.robot
         sym = cost.sym
         tool = sym.frame_placement(robot.tool_frame_id)
@@ -116,10 +120,11 @@ class StateEvaluator:
             sym.mass_matrix().T,
             sym.gravity_torque(),
             tool_drift(sym.q, J, predicted_velocity(J, dq, twist)),
+            *row_parts(rows, sym, robot),
         ]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
-        self.dtype = state_dtype(robot.nq)
+        self.dtype = state_dtype(robot.nq, sum(np.size(kind.bounds(robot)[0]) for kind in rows))
         assert stacked.numel() * 8 == self.dtype.itemsize  # the record is the output, field for field
         self._zero_velocity = np.zeros(robot.nq)
         self._fn = FastFunction(
@@ -158,6 +163,14 @@ class StateEvaluator:
             raise ValueError(f"bind needs a ({self.dtype}) record of one element")
         self._fn.use_output(0, record.view(np.float64))
         self._record = record
+
+
+def row_parts(rows: Sequence[RowKind], sym, robot) -> tuple[ca.SX, ca.SX]:
+    """The row kinds' values ``h(q)`` stacked (m,) and their exact Jacobian, transposed for the record's
+    row-major layout (n, m); none: one zero row."""
+    values = ca.vertcat(*[kind.values(sym, robot) for kind in rows]) if rows else ca.SX.zeros(1)
+    gradient = ca.jacobian(values, sym.q) if rows else ca.SX.zeros(1, robot.nq)
+    return ca.densify(values), ca.densify(gradient.T)  # (a joint that cannot move h: a structural zero)
 
 
 PREDICTION_DAMPING = 1e-2

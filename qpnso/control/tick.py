@@ -13,8 +13,8 @@ Every tick, for every strategy, runs the same four steps on named records:
    checks, into the command record (:func:`command_dtype`).
 
 The small formulas are kernels of their own: :func:`pose_error`, :func:`level1_target`,
-:func:`velocity_bounds`, :func:`cost_step`, :func:`low_pass`, :func:`elbow_row_bounds`,
-:func:`answer_bits`, :func:`finish_command`.
+:func:`cost_step`, :func:`low_pass`, :func:`answer_bits`, :func:`finish_command`; the constraint rows (joint
+limits, the elbow, the row kinds a controller is given) are :mod:`qpnso.control.rows`.
 """
 
 from __future__ import annotations
@@ -46,6 +46,9 @@ from qpnso.control.memory import (
     memory_dtype,
 )
 from qpnso.control.params import params_dtype
+from qpnso.control.rows.elbow import elbow_row
+from qpnso.control.rows.joint_limits import velocity_bounds
+from qpnso.control.rows.kind import add_rows
 from qpnso.control.state import sanitize_state, state_dtype
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, nullspace_part
 from qpnso.qp.problem import SOLVED, problem_dtype, solution_dtype
@@ -104,17 +107,18 @@ def command_dtype(n: int) -> np.dtype:
     return np.dtype(vectors + [("stiffness_dt", f8), ("damping", f8), ("damp_cmd", f8)])
 
 
-def tick_dtype(n: int) -> np.dtype:
-    """The one record a tick reads and writes, for ``n`` joints: the arm's ``state``
+def tick_dtype(n: int, rows: int = 0, hard: int = 0, soft: int = 0) -> np.dtype:
+    """The one record a tick reads and writes, for ``n`` joints and ``rows`` rows of row kinds (``hard`` of
+    them hard, ``soft`` soft; :mod:`qpnso.control.rows`): the arm's ``state``
     (:mod:`qpnso.control.state`, written by CasADi in place), the ``params`` (:mod:`qpnso.control.params`), the
     ``memory`` across ticks (:mod:`qpnso.control.memory`), the ``problem`` and its ``solution``
     (:mod:`qpnso.qp.problem`), the ``report`` and the ``command``."""
     return np.dtype(
         [
-            ("state", state_dtype(n)),
-            ("params", params_dtype(n)),
+            ("state", state_dtype(n, rows)),
+            ("params", params_dtype(n, rows)),
             ("memory", memory_dtype(n)),
-            ("problem", problem_dtype(n)),
+            ("problem", problem_dtype(n, hard, 1 + soft)),  # (+1: the elbow row)
             ("solution", solution_dtype(n)),
             ("report", report_dtype()),
             ("command", command_dtype(n)),
@@ -206,27 +210,6 @@ def limits_status(q, low, high):
 
 
 @njit(cache=True)
-def velocity_bounds(q, P):
-    """``(lb, ub)`` (rad/s): ``−γ(q − q_min) ≤ q̇ ≤ γ(q_max − q)`` clipped to ``±dq_max`` and
-    ``ub ≥ lb`` (γ·dt ≤ 1: q never crosses a limit; γ = ``P.joint_limit_gain``).  A joint outside a limit
-    is pushed back at rate γ and moves at most at ``P.recovery_speed`` rad/s either way, never at its
-    velocity limit."""
-    n = q.shape[0]
-    lb, ub = np.empty(n), np.empty(n)
-    gain, recovery = P.joint_limit_gain, P.recovery_speed
-    for i in range(n):
-        q_min, q_max, dq_max = P.q_min[i], P.q_max[i], P.dq_max[i]
-        lo = min(max(gain * (q_min - q[i]), -dq_max), dq_max)
-        hi = min(max(gain * (q_max - q[i]), -dq_max), dq_max)
-        if q[i] < q_min:  # outside: back at most at the recovery speed, and no faster the other way
-            lo, hi = min(lo, recovery), min(hi, recovery)
-        elif q[i] > q_max:
-            lo, hi = max(lo, -recovery), max(hi, -recovery)
-        lb[i], ub[i] = lo, max(hi, lo)
-    return lb, ub
-
-
-@njit(cache=True)
 def cost_step(J, cost_gradient, gain, speed_max):
     """The ``qp`` strategy's step ``k∇c`` (rad/s), scaled so that its part in ``ker J`` (what the
     null space can do) is at most ``speed_max`` rad/s (the saturation of [M 20])."""
@@ -244,14 +227,6 @@ def low_pass(previous, step, alpha):
     if alpha <= 0.0:
         return step.copy()
     return previous + alpha * (step - previous)
-
-
-@njit(cache=True)
-def elbow_row_bounds(ns, rom_lo, rom_hi, gain, recovery):
-    """``(l, u)`` (rad/s) of the elbow row ``ξ(ns_lo − ns) ≤ ∇nsᵀ q̇ ≤ ξ(ns_hi − ns)``: the velocity
-    damper that keeps the arm angle in ROM_t, or brings it back at rate ξ but at most ``recovery``
-    rad/s (a fast elbow return would drag the held tool: its second-order drift grows as q̇²)."""
-    return min(gain * (rom_lo - ns), recovery), max(gain * (rom_hi - ns), -recovery)
 
 
 @njit(cache=True)
@@ -313,7 +288,8 @@ def begin_tick(q, twist, tick):
     the arm angle is singular (``ELBOW_DROPPED``), else advanced (:data:`TICK_NEED_INTERVAL` when the
     continuity interval is due) and bounded (:func:`qpnso.control.memory.elbow_bounds`) — then level 1's
     error (:func:`pose_error`) and target (:func:`level1_target`) and the joint bounds
-    (:func:`velocity_bounds`).  Returns :data:`TICK_READY` or why not."""
+    (:func:`qpnso.control.rows.joint_limits.velocity_bounds`), and the rows of the controller's row kinds
+    (:func:`qpnso.control.rows.kind.add_rows`).  Returns :data:`TICK_READY` or why not."""
     t = tick[0]
     s, P, m, pb, r = t.state, t.params, t.memory, t.problem, t.report
     limit = limits_status(q, P.q_check_lo, P.q_check_hi)
@@ -349,6 +325,7 @@ def begin_tick(q, twist, tick):
     pb.b1[:] = level1_target(twist, e, P, s.drift)
     pb.lb[:], pb.ub[:] = velocity_bounds(q, P)
     pb.has_level2, pb.n_hard, pb.n_soft = 0, 0, 0
+    add_rows(pb, s, P)  # the row kinds' rows (qpnso.control.rows)
     return TICK_READY
 
 
@@ -372,7 +349,7 @@ def stop_tick(q, gravity, tick):
 def qp_level2(tick):
     """The ``qp`` strategy's level 2 (docs/method.md §7) into the tick record's problem: ``½‖q̇‖² + sᵀq̇``
     with ``s`` the cost step (:func:`cost_step`) low-passed in its memory, and — unless the elbow is
-    dropped — the elbow row ``∇nsᵀ q̇`` within :func:`elbow_row_bounds`, soft; and its null-space impedance
+    dropped — the elbow row (:func:`qpnso.control.rows.elbow.elbow_row`), soft; and its null-space impedance
     ``τ_null = K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)`` into its command's torque law."""
     t = tick[0]
     s, P, m, r, pb, c = t.state, t.params, t.memory, t.report, t.problem, t.command
@@ -383,12 +360,8 @@ def qp_level2(tick):
     )
     pb.has_level2, pb.m2, pb.use_H2, pb.use_g2 = 1, 0, 1, 1  # (H2 is the identity: new_problem)
     pb.g2[:] = m.cost_step
-    if r.dropped:
-        pb.n_soft = 0
-        return
-    pb.n_soft, pb.slack_weight = 1, P.slack_weight
-    pb.soft_C[0] = s.arm_angle_gradient
-    pb.soft_l[0], pb.soft_u[0] = elbow_row_bounds(r.ns, r.rom_lo, r.rom_hi, P.elbow_gain, P.recovery_speed)
+    if not r.dropped:
+        elbow_row(pb, s, r, P)
 
 
 @njit(cache=True)

@@ -249,14 +249,16 @@ def line_setup(problem, tol, line):
     L.x0[:], L.d[:], L.t_lo, L.t_hi = x0, d, t_lo, t_hi
     L.x1[:] = least_norm_point(x0, d, t_lo, t_hi)
     L.nv, L.p = 0, 0
-    if not pb.has_level2:
+    p = pb.n_soft
+    if not pb.has_level2 and not p:
         return LINE_OK
-    n, m, p = d.shape[0], pb.m2, pb.n_soft
+    n, own = d.shape[0], pb.has_level2 != 0  # (soft rows without an objective: the least-norm ½‖q̇‖² with them)
+    m = pb.m2 if own else 0
     level = LevelParts(
         pb.A2[:m],
         pb.b2[:m],
-        pb.H2[: n if pb.use_H2 else 0],
-        pb.g2[: n if pb.use_g2 else 0],
+        pb.H2[: n if pb.use_H2 or not own else 0],
+        pb.g2[: n if pb.use_g2 and own else 0],
         pb.soft_C[:p],
         pb.soft_l[:p],
         pb.soft_u[:p],

@@ -7,7 +7,8 @@ Every tick, whatever the strategy, states the same two-level problem over ``x = 
 * **level 1**: the tool task ``A1 x = b1`` (6 rows: the tool twist, m/s then rad/s, world frame);
 * **level 2** (if ``has_level2``): ``‖A2 x − b2‖²`` (its first ``m2`` rows) ``+ ½ xᵀH2x`` (if ``use_H2``)
   ``+ g2ᵀx`` (if ``use_g2``), and the soft rows ``soft_l ≤ soft_C x + s ≤ soft_u`` (the first
-  ``n_soft``) with cost ``slack_weight·‖s‖²``.
+  ``n_soft``) with cost ``slack_weight·‖s‖²``; soft rows without ``has_level2`` make level 2 those rows
+  with the least-norm ``½‖x‖²`` (``H2``, the identity, as :func:`new_problem` leaves it).
 
 :func:`problem_dtype` is the record's NumPy type; the Numba kernels of the tick write it by field
 (:mod:`qpnso.control.tick`), a Python strategy through :func:`set_level2`, and
@@ -131,13 +132,15 @@ def problem_levels(problem: np.ndarray) -> list[Level]:
     first = Level(A=p["A1"].copy(), b=p["b1"].copy())
     if nh:
         first.C, first.l, first.u = p["hard_C"][:nh].copy(), p["hard_l"][:nh].copy(), p["hard_u"][:nh].copy()
-    if not p["has_level2"]:
+    own = bool(p["has_level2"])
+    if not own and not ns:
         return [first]
-    second = Level(
+    m = m if own else 0
+    second = Level(  # (soft rows without an objective: the least-norm ½‖q̇‖² with them, as qpnso.qp.line)
         A=p["A2"][:m].copy() if m else None,
         b=p["b2"][:m].copy() if m else None,
-        H=p["H2"].copy() if p["use_H2"] else None,
-        g=p["g2"].copy() if p["use_g2"] else None,
+        H=p["H2"].copy() if p["use_H2"] or not own else None,
+        g=p["g2"].copy() if p["use_g2"] and own else None,
     )
     if ns:
         second.C, second.l, second.u = p["soft_C"][:ns].copy(), p["soft_l"][:ns].copy(), p["soft_u"][:ns].copy()

@@ -1,0 +1,61 @@
+"""The contract of a constraint row kind (docs/method.md §7.2), and the kernel that puts every row of the
+kinds a controller was given into the tick's problem.
+
+A kind is a :class:`RowKind`: :meth:`RowKind.values` gives ``h(q)`` (m rows, a CasADi expression over the
+symbolic model: its exact gradient is taken in the tick's one CasADi call, :mod:`qpnso.control.state`) and
+:meth:`RowKind.bounds` the interval ``[h_lo, h_hi]`` it keeps ``h`` in.  Each tick, :func:`add_rows` turns
+each row into ``∇h(q)ᵀ q̇`` within the velocity damper (:func:`~qpnso.control.rows.damper.damper`, gain
+:attr:`RowKind.gain`): a hard row binds every level (the tool gives way: ``TOOL_LIMITED``) and the line fast
+path folds it into its segment; a soft row is level 2's, with the elbow rows' slack weight.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+from numba import njit
+
+from qpnso.control.rows.damper import damper
+
+
+@dataclass(frozen=True)
+class RowKind:
+    """A kind of constraint row ``h_lo ≤ h(q) ≤ h_hi`` (a subclass gives :meth:`values` and :meth:`bounds`).
+
+    ``gain`` (1/s): the velocity damper's γ (γ·dt ≤ 1: h never crosses a bound); ``soft``: level 2's
+    (with slack) instead of hard on every level."""
+
+    gain: float = 20.0
+    soft: bool = False
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    def values(self, model, robot) -> ca.SX:
+        """``h(q)`` (m,): CasADi over ``model`` (:class:`qpnso.model.symbolic.SymbolicModel`, its ``q``)."""
+        raise NotImplementedError
+
+    def bounds(self, robot) -> tuple[np.ndarray, np.ndarray]:
+        """``(h_lo, h_hi)`` (m,) each, ∓inf for an open side, in the units of :meth:`values`."""
+        raise NotImplementedError
+
+
+@njit(cache=True)
+def add_rows(pb, s, P):
+    """Every row of the controller's row kinds into the problem ``pb``: ``damper(h, h_lo, h_hi)`` ≤
+    ``∇hᵀ q̇`` from the state ``s`` (``rows``, ``rows_gradient``) and the params ``P`` (``row_lo``,
+    ``row_hi``, ``row_gain``, ``row_soft``, ``n_rows``; the recovery speed), hard rows after the problem's
+    hard rows, soft ones after its soft rows."""
+    for i in range(P.n_rows):
+        lo, hi = damper(s.rows[i], P.row_lo[i], P.row_hi[i], P.row_gain[i], P.recovery_speed)
+        if P.row_soft[i]:
+            k = pb.n_soft
+            pb.soft_C[k], pb.soft_l[k], pb.soft_u[k] = s.rows_gradient[i], lo, hi
+            pb.n_soft, pb.slack_weight = k + 1, P.slack_weight
+        else:
+            k = pb.n_hard
+            pb.hard_C[k], pb.hard_l[k], pb.hard_u[k] = s.rows_gradient[i], lo, hi
+            pb.n_hard = k + 1

@@ -60,3 +60,22 @@ def limit_params(q_min: np.ndarray, q_max: np.ndarray, dq_max: np.ndarray, gain:
     P["q_min"], P["q_max"], P["dq_max"] = q_min, q_max, dq_max
     P["joint_limit_gain"], P["recovery_speed"] = gain, recovery
     return P
+
+
+def kernel_signatures() -> dict[str, int]:
+    """Signature counts of every Numba kernel of every qpnso module (walked, not listed by hand)."""
+    import importlib
+    import pkgutil
+
+    import numba
+
+    out = {}
+    for info in pkgutil.walk_packages(qpnso.__path__, "qpnso."):
+        try:
+            module = importlib.import_module(info.name)
+        except ImportError:  # an optional dependency (extras) missing
+            continue
+        for name, value in vars(module).items():
+            if isinstance(value, numba.core.dispatcher.Dispatcher) and value.py_func.__module__ == module.__name__:
+                out[f"{module.__name__}.{name}"] = len(value.signatures)
+    return out

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import kernel_signatures
 
 import qpnso
 from qpnso.control.config import ControllerConfig, Status
@@ -133,3 +134,17 @@ def test_a_soft_row_is_level_two_s(robot) -> None:
 def test_a_bad_row_kind_is_refused_naming_it(robot, kind, words: str) -> None:
     with pytest.raises(qpnso.ConfigError, match=words):
         Controller(robot, ControllerConfig(), rows=[kind])
+
+
+def test_no_kernel_loads_in_a_tick_with_a_row_kind(robot) -> None:
+    """A controller with a row kind (another record layout: its kernels are other signatures) compiles or
+    loads them all in its constructor: none in a tick, held, moving, with the row binding."""
+    kernel_signatures()  # every module imported first
+    ctrl = Controller(robot, ControllerConfig(), rows=[ElbowFloor(z_min=elbow_z(robot, Q1) - 1e-3)])
+    before = kernel_signatures()
+    ctrl.reset(Q1)
+    q = Q1.copy()
+    for k in range(50):
+        q = ctrl.step(q, tool_twist=[0.0, 0.0, -0.05, 0.0, 0.0, 0.0] if k > 10 else None).q_des
+    after = kernel_signatures()
+    assert {k: (before.get(k), n) for k, n in after.items() if n != before.get(k)} == {}

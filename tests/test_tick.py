@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import limit_params, reference_arm_angle
+from conftest import kernel_signatures, limit_params, reference_arm_angle
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -450,33 +450,14 @@ def test_a_qpsolvers_back_end_answers_as_proxsuite(robot) -> None:
         q = q + DT * x.dq
 
 
-def _kernel_signatures() -> dict[str, int]:
-    """Signature counts of every Numba kernel of every qpnso module (walked, not listed by hand)."""
-    import importlib
-    import pkgutil
-
-    import numba
-
-    out = {}
-    for info in pkgutil.walk_packages(qpnso.__path__, "qpnso."):
-        try:
-            module = importlib.import_module(info.name)
-        except ImportError:  # an optional dependency (extras) missing
-            continue
-        for name, value in vars(module).items():
-            if isinstance(value, numba.core.dispatcher.Dispatcher) and value.py_func.__module__ == module.__name__:
-                out[f"{module.__name__}.{name}"] = len(value.signatures)
-    return out
-
-
 @pytest.mark.parametrize("strategy", ["qp", "damped"])
 def test_no_kernel_of_any_module_loads_in_a_tick_after_the_constructor(robot, strategy: str) -> None:
     """After the constructor, no tick loads or compiles a kernel of any qpnso module: the compiled tick, the
     general path, a dropped elbow (q = 0, the wrist over the shoulder; its K(ns) was once loaded in the first
     such tick, 85 ms when the cache had to be rebuilt), a joint just outside its limit, a tool pose."""
-    _kernel_signatures()  # every module imported first
+    kernel_signatures()  # every module imported first
     ctrl = Controller(robot, ControllerConfig(strategy=strategy))
-    before = _kernel_signatures()
+    before = kernel_signatures()
     ctrl.reset(Q0)
     ctrl.step(Q0, tool_twist=[0.05, 0.0, 0.0, 0.0, 0.0, 0.1])
     outside = Q0.copy()
@@ -486,5 +467,5 @@ def test_no_kernel_of_any_module_loads_in_a_tick_after_the_constructor(robot, st
     ctrl.reset(np.zeros(7))
     cmd = ctrl.step(np.zeros(7))
     assert cmd.status & Status.ELBOW_DROPPED
-    after = _kernel_signatures()
+    after = kernel_signatures()
     assert {k: (before.get(k), n) for k, n in after.items() if n != before.get(k)} == {}

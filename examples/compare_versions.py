@@ -1,6 +1,6 @@
 """Two qpnso versions' ticks in one process, timed in turns, with Pink's solve_ik beside them.
 
-Run: python examples/compare_versions.py OTHER_CHECKOUT [-n 3000] [--strategies qp,damped,...]
+Run: python examples/compare_versions.py OTHER_CHECKOUT [-n 3000] [--strategies qp,damped,...] [--moving]
 (without OTHER_CHECKOUT: this version against itself, 300 ticks of qp: a check that the script works).
 
 OTHER_CHECKOUT is a folder holding another version's `qpnso/` and `models/` (for instance
@@ -9,7 +9,8 @@ OTHER_CHECKOUT is a folder holding another version's `qpnso/` and `models/` (for
 in turns of 250 ticks (`qpnso.lab.benchmark.interleaved`): on a shared VM whose speed drifts by
 2x over seconds, only rows timed side by side can be compared (separate runs of the same
 code differed by 30 %, measured). Prints each strategy's median and p99 for both versions
-and their ratio; the tool is held from the robot's sample configuration.
+and their ratio; the tool is held from the robot's sample configuration (``--moving``: it moves on a
+small circle, :func:`qpnso.lab.benchmark.moving_tool_ticks`; Pink's row stays a held tool).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 import qpnso
-from qpnso.lab.benchmark import held_tool_ticks, interleaved, pink_ticks
+from qpnso.lab.benchmark import held_tool_ticks, interleaved, moving_tool_ticks, pink_ticks
 
 _IMPORTS = (
     (re.compile(r"\bfrom qpnso\b"), "from qpnso_other"),
@@ -57,6 +58,7 @@ def main() -> None:
     parser.add_argument("other", type=Path, nargs="?", help="another checkout (holding qpnso/ and models/)")
     parser.add_argument("-n", type=int, default=None, help="timed ticks per row (default 3000)")
     parser.add_argument("--strategies", default=None, help="comma-separated (default all)")
+    parser.add_argument("--moving", action="store_true", help="the tool on a 1.6 cm circle at 5 cm/s, not held")
     args = parser.parse_args()
     smoke = args.other is None
     strategies = (args.strategies or ("qp" if smoke else ",".join(qpnso.STRATEGIES))).split(",")
@@ -74,7 +76,7 @@ def main() -> None:
             ctrl.cost.wait_compiled()
             ctrl.evaluate.wait_compiled()
             ctrl.reset(q0)
-            runs[f"{name} {tag}"] = held_tool_ticks(ctrl, q0)
+            runs[f"{name} {tag}"] = (moving_tool_ticks if args.moving else held_tool_ticks)(ctrl, q0)
     robot = qpnso.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.1])
     pink = pink_ticks(robot, robot.sample_configuration())
     if pink is not None:

@@ -311,3 +311,23 @@ def test_tool_motion_beyond_the_joint_speeds_is_flagged(lwr_qp: Controller) -> N
     assert cmd.status & Status.TOOL_LIMITED and cmd.ok
     assert np.all(np.abs(cmd.dq) <= robot.dq_max + 1e-9)
     assert (robot.jacobian(q0) @ cmd.dq)[0] > 0.1  # still moving the tool the right way
+
+
+def test_the_moving_benchmark_moves_the_tool_on_its_circle() -> None:
+    """``moving_tool_ticks`` (the moving rows of examples/compare_versions.py): after a whole period the
+    tool point is back where it started, and after half a period it is one diameter, speed·period/π, away
+    (Pinocchio's forward kinematics of the commanded joints)."""
+    from qpnso.lab.benchmark import moving_tool_ticks
+
+    robot = qpnso.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.1])
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    q0 = robot.sample_configuration()
+    ctrl.reset(q0)
+    run = moving_tool_ticks(ctrl, q0, speed=0.05, period=0.4)
+    start = robot.tool_pose(q0).translation
+    times = run(200)
+    assert times.shape == (200,) and np.all(times > 0)
+    half = ctrl.ref_position  # (the run's q is its own: the reference is where the twist has taken the tool)
+    assert np.linalg.norm(half - start) == pytest.approx(0.05 * 0.4 / np.pi, rel=1e-2)
+    run(200)
+    np.testing.assert_allclose(ctrl.ref_position, start, atol=1e-4)

@@ -124,6 +124,30 @@ def held_tool_ticks(ctrl, q0: np.ndarray) -> Callable[[int], np.ndarray]:
     return ticks
 
 
+def moving_tool_ticks(ctrl, q0: np.ndarray, speed: float = 0.05, period: float = 2.0) -> Callable[[int], np.ndarray]:
+    """As :func:`held_tool_ticks`, with the tool moving: its point on a horizontal circle at ``speed`` m/s,
+    one turn per ``period`` s (radius ``speed·period/2π``: 1.6 cm at the defaults), so the continuity
+    interval is renewed every ``interval_period`` ticks (docs/method.md §5) as in hands-on use."""
+    q = q0.copy()
+    dt = ctrl.config.dt
+    k_total = 0
+
+    def ticks(k: int) -> np.ndarray:
+        nonlocal q, k_total
+        times = np.empty(k)
+        for i in range(k):
+            phase = 2.0 * np.pi * k_total * dt / period
+            twist = np.array([-speed * np.sin(phase), speed * np.cos(phase), 0.0, 0.0, 0.0, 0.0])
+            t0 = time.perf_counter()
+            cmd = ctrl.step(q, tool_twist=twist)
+            times[i] = time.perf_counter() - t0
+            q = q + dt * cmd.dq
+            k_total += 1
+        return times
+
+    return ticks
+
+
 def interleaved(runs: dict[str, Callable[[int], np.ndarray]], n: int, chunk: int = 500) -> dict[str, np.ndarray]:
     """``n`` timed calls of each run, taken in turns of ``chunk``: every row sees the same
     machine (on a shared VM its speed drifts by 2× over seconds, measured)."""

@@ -144,8 +144,9 @@ class Controller:
             np.zeros(n),
             np.zeros(n),
         )
-        command = self.records.command
+        command, memory = self.records.command, self.records.memory
         self._command_views = (command["dq"][0], command["q_des"][0], command["tau"][0])
+        self._ref = (memory["ref_R"][0], memory["ref_p"][0])  # views (reset rewrites the memory in place)
         self.strategy = make_strategy(cfg.strategy, self)
         self._reset_done = False
         self._warm_up()
@@ -202,20 +203,20 @@ class Controller:
     @property
     def ref_rotation(self) -> np.ndarray:
         """The tool's reference rotation (world ← tool), a copy."""
-        return self.records.memory[0]["ref_R"].copy()
+        return self._ref[0].copy()
 
     @ref_rotation.setter
     def ref_rotation(self, value: np.ndarray) -> None:
-        self.records.memory[0]["ref_R"] = value
+        self._ref[0][:] = value
 
     @property
     def ref_position(self) -> np.ndarray:
         """The tool's reference position (m, world), a copy."""
-        return self.records.memory[0]["ref_p"].copy()
+        return self._ref[1].copy()
 
     @ref_position.setter
     def ref_position(self, value: np.ndarray) -> None:
-        self.records.memory[0]["ref_p"] = value
+        self._ref[1][:] = value
 
     # ----------------------------------------------------------------- step
     def step(
@@ -359,9 +360,9 @@ class Controller:
         if not np.any(twist):
             return
         dt = self.config.dt
-        m = self.records.memory[0]
-        m["ref_p"] = m["ref_p"] + dt * twist[:3]
-        m["ref_R"] = pin.exp3(dt * twist[3:]) @ m["ref_R"]
+        R, p = self._ref
+        p += dt * twist[:3]
+        R[:] = pin.exp3(dt * twist[3:]) @ R
 
     def _update_interval(self, q: np.ndarray, state: np.ndarray) -> None:
         """Recompute the continuity interval [E 9] at ``q`` into the memory; when it cannot be, the previous

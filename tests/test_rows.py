@@ -148,3 +148,14 @@ def test_no_kernel_loads_in_a_tick_with_a_row_kind(robot) -> None:
         q = ctrl.step(q, tool_twist=[0.0, 0.0, -0.05, 0.0, 0.0, 0.0] if k > 10 else None).q_des
     after = kernel_signatures()
     assert {k: (before.get(k), n) for k, n in after.items() if n != before.get(k)} == {}
+
+
+def test_two_equal_row_kinds_are_two_rows(robot) -> None:
+    """Two equal kinds (frozen dataclasses compare equal) are two rows each with room in the records."""
+    z = elbow_z(robot, Q1) - 0.05
+    ctrl = Controller(robot, ControllerConfig(), rows=[ElbowFloor(z_min=z), ElbowFloor(z_min=z)])
+    ctrl.reset(Q1)
+    assert ctrl.step(Q1).ok
+    p = ctrl.records.problem[0]
+    assert p["n_hard"] == 2 and p["hard_C"].shape[0] == 2
+    np.testing.assert_array_equal(p["hard_C"][0], p["hard_C"][1])

@@ -358,7 +358,7 @@ def test_a_hard_row_folds_into_the_segment(robot) -> None:
     assert d @ x <= p["hard_u"][0] + 1e-9 and d @ x == pytest.approx(p["hard_u"][0], abs=1e-7)
     reference = ctrl.qp.solve(problem_levels(problem), p["lb"], p["ub"])
     np.testing.assert_allclose(x, reference.x, rtol=0, atol=1e-7)
-    assert new_problem(7).dtype == problem.dtype
+    assert new_problem(7, 2, 3).dtype == problem.dtype  # the controller's room: 2 hard rows; the elbow's and 2 soft
 
 
 def test_failed_level_two_holds_the_tool(robot, monkeypatch) -> None:

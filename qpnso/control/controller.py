@@ -35,6 +35,7 @@ from qpnso.control.flags import ELBOW_BITS, FLAG_ELBOW_DROPPED, FLAG_INTERNAL_ER
 from qpnso.control.memory import interval_failed, new_memory, store_interval
 from qpnso.control.params import tick_params
 from qpnso.control.rows import RowKind
+from qpnso.control.rows.kind import row_counts
 from qpnso.control.state import StateEvaluator
 from qpnso.control.tick import (
     TICK_NEED_INTERVAL,
@@ -118,7 +119,9 @@ class Controller:
         cfg = self.config
         self.rows = checked_rows(rows, robot, cfg.dt)
         self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed, compile=cfg.compile)
-        self.evaluate = StateEvaluator(self.cost, compile=cfg.compile, rows=self.rows)
+        _, _, self._hard_room, self._soft_room = row_counts(self.rows, robot)
+        room = self._hard_room + self._soft_room
+        self.evaluate = StateEvaluator(self.cost, compile=cfg.compile, rows=self.rows, room=room)
         self.elbow_config = cfg.elbow()
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
         n = robot.nq
@@ -126,11 +129,10 @@ class Controller:
         self._dq_accepted = cfg.dq_tolerance_factor * robot.dq_max  # rad/s: beyond, InputError
         self._time_budget = cfg.solver_time_budget
         self._no_twist = np.zeros(6)  # never written (writable: a read-only array is another Numba type)
-        sizes = {kind: np.size(kind.bounds(robot)[0]) for kind in self.rows}
-        hard, soft = (sum(m for kind, m in sizes.items() if kind.soft == s) for s in (False, True))
-        self.tick = tick = np.zeros(1, tick_dtype(n, hard + soft, hard, soft))
-        tick["params"] = tick_params(robot, cfg, self.rows)
-        tick["problem"] = new_problem(n, hard, 1 + soft)
+        hard_room, soft_room = self._hard_room, self._soft_room
+        self.tick = tick = np.zeros(1, tick_dtype(n, hard_room + soft_room, hard_room, soft_room))
+        tick["params"] = tick_params(robot, cfg, self.rows, hard_room + soft_room)
+        tick["problem"] = new_problem(n, hard_room, 1 + soft_room)
         self.evaluate.bind(tick["state"])
         self.records = TickRecords(
             tick,

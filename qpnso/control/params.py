@@ -73,10 +73,10 @@ def params_dtype(n: int, rows: int = 0) -> np.dtype:
     )
 
 
-def tick_params(robot: Robot, config, rows: Sequence[RowKind] = ()) -> np.ndarray:
+def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 0) -> np.ndarray:
     """The tick's constants for ``robot`` under ``config`` (a :class:`~qpnso.control.config.ControllerConfig`)
-    with the row kinds ``rows`` (their bounds, gains, hard or soft; :mod:`qpnso.control.rows`), as a
-    1-element record array (the form Numba reads cheaply)."""
+    with the row kinds ``rows`` (their bounds, gains, hard or soft; :mod:`qpnso.control.rows`; room for
+    ``room`` rows), as a 1-element record array (the form Numba reads cheaply)."""
     from qpnso.control.strategies import filter_alpha
 
     cfg, ec = config, config.elbow()
@@ -125,7 +125,11 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = ()) -> np.ndarra
             row_soft=np.repeat([float(kind.soft) for kind in rows], sizes),
             n_rows=sum(sizes),
         )
-    params = np.zeros(1, params_dtype(robot.nq, sum(sizes)))
+    params = np.zeros(1, params_dtype(robot.nq, max(room, sum(sizes))))
     for name, value in values.items():
-        params[name] = value
+        field = params[name][0]
+        if name.startswith("row_"):
+            field[: np.size(value)] = value  # (the rows first; the room after them unused)
+        else:
+            params[name] = value
     return params

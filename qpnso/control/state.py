@@ -100,7 +100,11 @@ class StateEvaluator:
     the function's own buffer (the tick reads it in place), ``__call__`` a :class:`TickState` copy.
     """
 
-    def __init__(self, cost: CostModel, compile: str | None = None, rows: Sequence[RowKind] = ()) -> None:
+    def __init__(
+        self, cost: CostModel, compile: str | None = None, rows: Sequence[RowKind] = (), room: int = 0
+    ) -> None:
+        """``rows``: the row kinds whose ``h(q)`` and ``∇h`` the state holds, in ``room`` ≥ their rows
+        (the rest zero)."""
         robot = cost.robot
         sym = cost.sym
         tool = sym.frame_placement(robot.tool_frame_id)
@@ -120,11 +124,11 @@ class StateEvaluator:
             sym.mass_matrix().T,
             sym.gravity_torque(),
             tool_drift(sym.q, J, predicted_velocity(J, dq, twist)),
-            *row_parts(rows, sym, robot),
+            *row_parts(rows, sym, robot, room),
         ]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
-        self.dtype = state_dtype(robot.nq, sum(np.size(kind.bounds(robot)[0]) for kind in rows))
+        self.dtype = state_dtype(robot.nq, max(room, sum(np.size(kind.bounds(robot)[0]) for kind in rows)))
         assert stacked.numel() * 8 == self.dtype.itemsize  # the record is the output, field for field
         self._zero_velocity = np.zeros(robot.nq)
         self._fn = FastFunction(
@@ -165,11 +169,13 @@ class StateEvaluator:
         self._record = record
 
 
-def row_parts(rows: Sequence[RowKind], sym, robot) -> tuple[ca.SX, ca.SX]:
+def row_parts(rows: Sequence[RowKind], sym, robot, room: int) -> tuple[ca.SX, ca.SX]:
     """The row kinds' values ``h(q)`` stacked (m,) and their exact Jacobian, transposed for the record's
-    row-major layout (n, m); none: one zero row."""
-    values = ca.vertcat(*[kind.values(sym, robot) for kind in rows]) if rows else ca.SX.zeros(1)
-    gradient = ca.jacobian(values, sym.q) if rows else ca.SX.zeros(1, robot.nq)
+    row-major layout (n, m), padded with zero rows to ``room`` rows (at least one)."""
+    values = ca.vertcat(*[kind.values(sym, robot) for kind in rows]) if rows else ca.SX.zeros(0)
+    gradient = ca.jacobian(values, sym.q) if rows else ca.SX.zeros(0, robot.nq)
+    pad = max(room, values.numel(), 1) - values.numel()
+    values, gradient = ca.vertcat(values, ca.SX.zeros(pad)), ca.vertcat(gradient, ca.SX.zeros(pad, robot.nq))
     return ca.densify(values), ca.densify(gradient.T)  # (a joint that cannot move h: a structural zero)
 
 

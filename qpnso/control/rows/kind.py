@@ -12,6 +12,7 @@ path folds it into its segment; a soft row is level 2's, with the elbow rows' sl
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import casadi as ca
 import numpy as np
@@ -41,6 +42,19 @@ class RowKind:
     def bounds(self, robot) -> tuple[np.ndarray, np.ndarray]:
         """``(h_lo, h_hi)`` (m,) each, ∓inf for an open side, in the units of :meth:`values`."""
         raise NotImplementedError
+
+
+ROOM = 2
+"""Rows of each kind (hard, soft) the tick's records hold at least: controllers with up to this many rows of
+each share one record type, so Numba compiles the tick once for them (a new record type: ~60 s cold)."""
+
+
+def row_counts(rows: Sequence[RowKind], robot) -> tuple[int, int, int, int]:
+    """``(hard, soft, hard_room, soft_room)``: the rows of ``rows`` (hard, soft) and the room the records
+    keep for them (at least :data:`ROOM` each)."""
+    hard = sum(np.size(kind.bounds(robot)[0]) for kind in rows if not kind.soft)
+    soft = sum(np.size(kind.bounds(robot)[0]) for kind in rows if kind.soft)
+    return hard, soft, max(hard, ROOM), max(soft, ROOM)
 
 
 @njit(cache=True)

@@ -141,3 +141,40 @@ def test_the_joint_limit_damper_has_its_gain_near_a_limit() -> None:
     np.testing.assert_allclose(lb, [-2.0, -0.02, -2.0], rtol=0, atol=1e-12)
     after = q[0] + 1e-3 * ub[0]
     assert q_max[0] - after == pytest.approx((1 - 20.0 * 1e-3) * 0.01, abs=1e-15)
+
+
+def test_elbow_up_damps_a_measured_velocity(robot) -> None:
+    """Elbow-up's torque with a measured joint velocity q̇ is its torque at rest plus the damping −D q̇
+    (D = ``joint_damping``, 10 N·m·s/rad): that part dissipates power −D|q̇|²."""
+    ctrl = controller(robot, "elbow-up", elbow_up_angle_deg=30.0)
+    state = ctrl.evaluate(Q1)
+    elbow = elbow_at(state)
+    at_rest = ctrl.strategy.nullspace_torque(state, elbow, np.zeros(7))
+    dq = np.random.default_rng(3).normal(size=7)
+    extra = ctrl.strategy.nullspace_torque(state, elbow, dq) - at_rest
+    assert dq @ extra == pytest.approx(-10.0 * (dq @ dq), rel=1e-12)
+    np.testing.assert_allclose(extra, -10.0 * dq, rtol=1e-12, atol=1e-12)
+
+
+def test_rom_modulation_target_decays_after_the_elbow_reenters(robot) -> None:
+    """Outside ROM_t the ``rom`` strategy's level 2 asks a low-passed step towards the set-point; once ``ns`` is
+    back inside, the target is not dropped at once but decays as the first-order low-pass of a zero step:
+    by (1 − dt/τ) = 0.99 a tick (dt = 1 ms, τ = ``posture_filter_time`` = 0.1 s), then nothing."""
+    ctrl = controller(robot, "rom")
+    state = ctrl.evaluate(Q1)
+    ns = state.arm_angle
+    outside = ElbowState(ns, (ns - 0.7, ns - 0.2), (-np.pi, np.pi), 10.0, Status.OK)
+    inside = ElbowState(ns, (ns - 0.5, ns + 0.5), (-np.pi, np.pi), 10.0, Status.OK)
+    first = ctrl.strategy.level2(state, outside)
+    assert first is not None and np.linalg.norm(first.b) > 0
+    decaying = ctrl.strategy.level2(state, inside)
+    assert decaying is not None
+    np.testing.assert_allclose(decaying.b, 0.99 * first.b, rtol=1e-12, atol=0)
+    ticks = 1
+    while ctrl.strategy.level2(state, inside) is not None:
+        ticks += 1
+        assert ticks < 5000
+    # the target fell below 1e-9 rad/s after n ticks with 0.99ⁿ·max|b| < 1e-9 ≤ 0.99ⁿ⁻¹·max|b|
+    n = int(np.ceil(np.log(1e-9 / np.abs(first.b).max()) / np.log(0.99)))
+    assert abs(ticks - n) <= 1
+    assert ctrl.strategy.level2(state, inside) is None

@@ -172,3 +172,37 @@ def test_compiled_code_agrees_with_the_virtual_machine(lwr, rng, tmp_path, monke
         for ff in (compiled, again):
             v1, g1 = ff(q)
             assert np.isclose(v1, v0, rtol=1e-12) and np.allclose(g1, g0, rtol=1e-10, atol=1e-14)
+
+
+def test_cost_weights_default_is_half_mass_half_friction_force() -> None:
+    """``CostWeights()`` is the paper's documented default: 50 % mass, 50 % friction force, no inertia and no
+    friction torque."""
+    w = qpnso.CostWeights()
+    assert (w.mass, w.inertia, w.friction_force, w.friction_torque) == (1.0, 0.0, 1.0, 0.0)
+    np.testing.assert_array_equal(w.as_array(), [1.0, 0.0, 1.0, 0.0])
+
+
+def test_default_cost_model_speeds_and_scales(lwr) -> None:
+    """``CostModel(robot)`` uses the documented defaults: s = 0.05 m/s (the paper's), s_w = 0.5 rad/s, and scales
+    that are the median |term| over 200 random configurations (seed 0, 0.1 rad inside the limits), here
+    recomputed with the NumPy/Pinocchio reference terms on the same sample of poses."""
+    cost = qpnso.CostModel(lwr)
+    assert cost.potential_speed == 0.05 and cost.potential_angular_speed == 0.5
+    rng = np.random.default_rng(0)
+    qs = [lwr.random_q(rng, margin=0.1) for _ in range(200)]
+    ref = [reference_terms(lwr, q, 0.05, 0.5) for q in qs]
+    np.testing.assert_allclose(cost.terms(qs[3])["friction_torque"], ref[3]["friction_torque"], rtol=1e-9)
+    for t in qpnso.TERMS:
+        assert cost.scales[t] == pytest.approx(np.median([abs(r[t]) for r in ref]), rel=1e-9), t
+
+
+def test_explicit_scales_are_used_and_must_be_positive(lwr) -> None:
+    """A valid ``scales=`` dict is taken as given (terms not named keep the scale 1); a zero or negative scale
+    and a zero angular potential speed are refused."""
+    cost = qpnso.CostModel(lwr, scales={"mass": 2.0, "friction_force": 4.0})
+    assert cost.scales == {"mass": 2.0, "inertia": 1.0, "friction_force": 4.0, "friction_torque": 1.0}
+    for bad in (0.0, -1.0):
+        with pytest.raises(qpnso.InputError, match="cost scales must be finite and > 0"):
+            qpnso.CostModel(lwr, scales={"inertia": bad})
+    with pytest.raises(qpnso.InputError, match="potential speeds must be > 0"):
+        qpnso.CostModel(lwr, potential_angular_speed=0.0)

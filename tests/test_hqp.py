@@ -667,3 +667,88 @@ def test_a_level_answer_is_judged_in_joint_space(seed, soft):
         else:
             assert got.status is LevelStatus.INACCURATE and "violated by" in got.message
     assert outcomes == {True, False}  # both kinds of answer were judged
+
+
+def test_a_crossed_bound_is_named_by_its_own_index() -> None:
+    """Bounds with lb ≤ ub except at index 3: the error names index 3 and its two values, not the first index."""
+    lb, ub = np.zeros(N), np.ones(N)
+    ub[3] = -1.0
+    with pytest.raises(InputError, match=r"lb\[3\] = 0\.0 > ub\[3\] = -1\.0"):
+        HierarchicalQP(N).solve([Level(**GOOD)], lb, ub)
+
+
+def test_a_zero_task_weight_ignores_its_row() -> None:
+    """Two rows ask x₀ = 1 and x₀ = 3: with weights (1, 0) the second row does not count (zero entries are
+    allowed), so x₀ = 1; with (1, 1) the least-squares compromise is x₀ = 2; the other joints stay at 0."""
+    A = np.zeros((2, N))
+    A[:, 0] = 1.0
+    b = np.array([1.0, 3.0])
+    expected = np.zeros(N)
+    for weight, x0 in ((np.array([1.0, 0.0]), 1.0), (np.array([1.0, 1.0]), 2.0)):
+        res = HierarchicalQP(N).solve([Level(A=A, b=b, weight=weight)])
+        expected[0] = x0
+        assert res.ok
+        np.testing.assert_allclose(res.x, expected, atol=1e-6)
+
+
+def test_a_level_below_a_task_keeps_an_inherited_row_and_its_own_row() -> None:
+    """Level 1: a 3-row task with one hard row; level 2: a cost with one hard row of its own.  Level 2's QP is
+    in the null space of level 1's task (Z not the identity) with 1 inherited and 1 own row: the answer is the
+    independent sequential reference's (equality form, quadprog)."""
+    rng = np.random.default_rng(4)
+    levels = [
+        Level(
+            A=rng.standard_normal((3, N)),
+            b=0.1 * rng.standard_normal(3),
+            C=rng.standard_normal((1, N)),
+            l=np.array([-0.05]),
+            u=np.array([0.05]),
+        ),
+        Level(
+            H=np.eye(N), g=rng.standard_normal(N), C=rng.standard_normal((1, N)), l=np.array([-0.1]), u=np.array([0.1])
+        ),
+    ]
+    lb, ub = -np.ones(N), np.ones(N)
+    res = HierarchicalQP(N).solve(levels, lb, ub)
+    assert res.ok
+    np.testing.assert_allclose(res.x, reference(levels, lb, ub)[-1], atol=1e-6)
+
+
+def test_line_segment_of_a_still_joint_outside_or_on_its_bound() -> None:
+    """Joint 1 does not move along the line (d₁ = 0): x0₁ = 2 above ub₁ = 1 (or −2 below lb₁) leaves no segment;
+    x0₁ exactly on ub₁ is within bounds, and the segment is then joint 0's [−1, 1]."""
+    from qpnso.qp.line import line_segment
+
+    lb, ub = -np.ones(2), np.ones(2)
+    for x1 in (2.0, -2.0):
+        t_lo, t_hi = line_segment(np.array([0.0, x1]), np.array([1.0, 0.0]), lb, ub)
+        assert t_lo > t_hi
+    assert line_segment(np.array([0.0, 1.0]), np.array([1.0, 0.0]), lb, ub) == (-1.0, 1.0)
+
+
+def test_a_short_first_task_leaves_its_whole_null_space_to_level_two() -> None:
+    """n = 3, level 1 asks only x₀ = 1 (one row, fewer than n − 1: no line of solutions but a plane); level 2 asks
+    x = (5, 2, 3): the answer is x = (1, 2, 3) exactly, with or without the line fast path."""
+    A1 = np.array([[1.0, 0.0, 0.0]])
+    levels = [Level(A=A1, b=np.array([1.0])), Level(A=np.eye(3), b=np.array([5.0, 2.0, 3.0]))]
+    for fast in (True, False):
+        res = HierarchicalQP(3, settings=QPSettings(line_fast_path=fast)).solve(
+            levels, -10 * np.ones(3), 10 * np.ones(3)
+        )
+        assert res.ok
+        np.testing.assert_allclose(res.x, [1.0, 2.0, 3.0], atol=1e-6)
+
+
+def test_level_answer_reports_the_violation_of_the_box() -> None:
+    """An answer z = (2, −0.5, 0) against the box [−1, 1]³ on z (no rows): the worst violation is 2 − 1 = 1 (by
+    hand); inside the box it is 0; x = x_prev + z (Z the identity)."""
+    from qpnso.qp.arrays import Basis, QPArrays
+    from qpnso.qp.cascade import level_answer
+
+    n = 3
+    qp = QPArrays(np.eye(n), np.zeros(n), np.zeros((0, n)), np.zeros(0), np.zeros(0), -np.ones(n), np.ones(n))
+    basis = Basis(np.full(n, 0.5), np.eye(n), True, True)
+    x, worst, slack = level_answer(np.array([2.0, -0.5, 0.0]), basis, qp, 0, 0)
+    assert worst == pytest.approx(1.0) and slack.shape == (0,)
+    np.testing.assert_allclose(x, [2.5, 0.0, 0.5])
+    assert level_answer(np.array([0.9, -0.5, 0.0]), basis, qp, 0, 0)[1] == 0.0

@@ -215,3 +215,59 @@ def test_limits_at_or_beyond_pi_go_to_the_numerical_method() -> None:
     with pytest.raises(ModelError, match=r"inside ±π; joint 1 has \[-7, 7\] rad"):
         I.feasible_intervals(wide, wide.tool_pose(q), S.branch(wide, q))
     assert I.continuity_interval(robot, q).method == "closed_form"  # real limits: unchanged
+
+
+def test_closed_form_arcs_end_at_a_singular_cut_and_name_their_ends() -> None:
+    """The LWR4+ pose with joint 6 through 0 at a known arm angle ns_cut (Pinocchio's, of that configuration):
+    the closed-form arcs Ψ are cut there into two arcs that meet at ns_cut, and both ends at the cut are named
+    ``Cause("singular", 5)``, with joint 6 at 0 there (closed-form IK)."""
+    robot = load_robot("lwr4p")
+    q_cut = np.radians([10, 40, -10, -70, 20, 50, 0])
+    q_cut[5] = 0.0
+    pose, ns_cut = robot.tool_pose(q_cut), E.arm_angle(robot, q_cut)
+    near = q_cut.copy()
+    near[5] = np.radians(5)
+    b = S.branch(robot, near)
+    psi = I.feasible_intervals(robot, pose, b)
+    assert [hi for _, hi in psi if hi == pytest.approx(ns_cut, abs=1e-9)] and [
+        lo for lo, _ in psi if lo == pytest.approx(ns_cut, abs=1e-9)
+    ]
+    arcs = I._arcs(I.self_motion(robot, pose, b), robot.q_min, robot.q_max, I._ALL_JOINTS)
+    ends = [(lo, lo_c) for lo, _, lo_c, _ in arcs] + [(hi, hi_c) for _, hi, _, hi_c in arcs]
+    at_cut = [cause for end, cause in ends if abs(I.wrap(end - ns_cut)) < 1e-9]
+    assert at_cut == [I.Cause("singular", 5)] * 2
+    assert abs(S.ik(robot, pose, ns_cut, b).reshape(-1)[5]) < 1e-6
+
+
+def test_numerical_options_are_frozen_and_end_walks_early() -> None:
+    """``NumericalOptions`` is an immutable value (frozen, hashable).  A walk of ``max_steps`` = 2 steps ends
+    "unfinished" on both sides (joint −1: not a joint), two joint-space steps of 0.03 rad from the start; with
+    ``sigma_min`` just below the tool Jacobian's smallest singular value at q (NumPy's SVD) one side meets a
+    "singular" end (joint −1) where that singular value is below ``sigma_min``.  Each end holds the pose and
+    its arm angle is the one reported (Pinocchio)."""
+    import dataclasses
+
+    options = I.NumericalOptions(max_steps=2)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        options.max_steps = 3  # type: ignore[misc]
+    assert hash(options) == hash(I.NumericalOptions(max_steps=2))
+    robot = load_robot("lwr4p")
+    q = np.radians([10, 40, -10, -70, 20, 50, 0])
+    ns, pose = E.arm_angle(robot, q), robot.tool_pose(q)
+    short = I.numerical_interval(robot, q, options)
+    assert short.lo_cause == short.hi_cause == I.Cause("unfinished", -1)
+    assert short.lo < ns < short.hi and not short.full_circle
+    for q_end in (short.lo_q, short.hi_q):
+        assert 0.05 < np.linalg.norm(q_end - q) < 0.061
+    sigma = np.linalg.svd(robot.jacobian(q), compute_uv=False)[-1]
+    tight = I.numerical_interval(robot, q, I.NumericalOptions(max_steps=3, sigma_min=sigma * (1 - 1e-6)))
+    singular = [
+        (end, q_end)
+        for end, cause, q_end in ((tight.lo, tight.lo_cause, tight.lo_q), (tight.hi, tight.hi_cause, tight.hi_q))
+        if cause == I.Cause("singular", -1)
+    ]
+    assert len(singular) == 1
+    end, q_end = singular[0]
+    assert np.linalg.svd(robot.jacobian(q_end), compute_uv=False)[-1] < sigma * (1 - 1e-6)
+    assert E.arm_angle(robot, q_end) == pytest.approx(end, abs=1e-12)
+    assert np.abs(robot.tool_pose(q_end).homogeneous - pose.homogeneous).max() < 1e-9

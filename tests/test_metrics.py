@@ -17,6 +17,7 @@ from qpnso.lab.metrics import (
     summarize_run,
     timing_summary,
     tracking_error,
+    uniform_period,
     user_work_per_metre,
 )
 
@@ -202,3 +203,65 @@ def test_work_per_metre_integrates_a_linear_power_exactly() -> None:
     p = np.zeros((t.size, 3))
     p[:, 1] = 4.0 * t**2
     assert user_work_per_metre(force, velocity, t, p) == pytest.approx((2.0 + 3.0) / 4.0, rel=1e-13)
+
+
+def test_input_errors_name_the_expected_shape_and_the_first_bad_index() -> None:
+    """The shape error states the shape the argument must have ((N,) for a per-tick series, (N, 3) for
+    positions), and the NaN error names the first bad sample, written out by hand here."""
+    with pytest.raises(InputError, match=r"ns must have shape \(N,\), got \(2, 2\)"):
+        elbow_mobility(np.zeros((2, 2)))
+    with pytest.raises(InputError, match=r"p must have shape \(N, 3\), got \(4,\)"):
+        path_length(np.zeros(4))
+    with pytest.raises(InputError, match=r"ns contains NaN or inf \(first at index 1\)"):
+        elbow_mobility([0.0, np.nan, 1.0, np.inf, np.nan])
+
+
+def test_uniform_period_error_reports_the_largest_deviation() -> None:
+    """t = (0, 1, 3, 4) s: the mean period is 4/3 s and the steps (1, 2, 1) s deviate from it by at most
+    2 − 4/3 = 0.667 s, which the error message reports."""
+    assert uniform_period([0.0, 0.5, 1.0, 1.5]) == pytest.approx(0.5)
+    with pytest.raises(InputError, match=r"period 1\.33333 s; deviation 0\.667 s"):
+        uniform_period([0.0, 1.0, 3.0, 4.0])
+
+
+def test_smoothness_needs_four_samples_and_works_with_exactly_four() -> None:
+    """The third difference needs 4 samples: with 4 samples of p = t³ (one jerk value 6, T = 3·dt, L = T³) S is
+    6·√(1/3) exactly; with 3 samples there is no jerk and smoothness refuses, naming the minimum."""
+    dt = 0.5
+    t = dt * np.arange(4)
+    p = np.zeros((4, 3))
+    p[:, 0] = t**3
+    assert smoothness(t, p) == pytest.approx(6.0 * np.sqrt(1.0 / 3.0), rel=1e-12)
+    with pytest.raises(InputError, match="p needs at least 4 samples, got 3"):
+        smoothness(t[:3], p[:3])
+
+
+def test_work_per_metre_refuses_a_repeated_time_stamp() -> None:
+    """A repeated time stamp (Δt = 0) is not strictly increasing: refused, as a decreasing one is."""
+    f = np.tile([1.0, 0.0, 0.0], (4, 1))
+    p = np.zeros((4, 3))
+    p[:, 0] = np.arange(4.0)
+    with pytest.raises(InputError, match="strictly increasing"):
+        user_work_per_metre(f, f, [0.0, 1.0, 1.0, 2.0], p)
+
+
+def test_summarize_run_of_four_ticks_by_hand() -> None:
+    """Four ticks 0.5 s apart: the tool path p = t³ along x gives the smoothness 6·√(1/3) (as
+    :func:`smoothness` with exactly 4 samples); 1 non-OK status tick out of 4 is a fraction 0.25; the slowest
+    tick of 1.5 ms is 1500 µs = 1.5 ms."""
+    t = 0.5 * np.arange(4)
+    p = np.zeros((4, 3))
+    p[:, 0] = t**3
+    s = summarize_run(
+        {
+            "t": t,
+            "tool_position": p,
+            "status": np.array([0, 5, 0, 0]),
+            "tick_time": np.array([1e-4, 1.5e-3, 2e-4, 3e-4]),
+        }
+    )
+    assert s["path_length_m"] == pytest.approx(27.0 / 8.0)
+    assert s["smoothness"] == pytest.approx(6.0 * np.sqrt(1.0 / 3.0), rel=1e-12)
+    assert s["status_not_ok_ticks"] == 1.0 and s["status_not_ok_fraction"] == 0.25
+    assert s["tick_time_max_us"] == pytest.approx(1500.0) and s["tick_time_max_ms"] == pytest.approx(1.5)
+    assert s["slow_ticks"] == 0.0  # all below the 0.5 s period

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from qpnso.elbow.intervals import Interval
-from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, stiffness
+from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, sigmoid_stiffness, stiffness
 from qpnso.errors import ConfigError, InputError
 
 D = math.radians
@@ -90,3 +90,42 @@ def test_plot_intervals_writes_png(tmp_path) -> None:
     robot = load_robot("lwr4p")
     path = plot_intervals(robot, np.radians([20, 60, -30, -80, 40, 70, 10]), rom=ElbowConfig(), out=tmp_path / "iv.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000
+
+
+def test_elbow_config_defaults_are_the_papers_scenario_a() -> None:
+    """``ElbowConfig()`` is the documented scenario A: ROM ±50°, safety margin 10°, stiffness 10–30 N·m/rad, with
+    α = 12/Δns and d = 0.75·Δns derived from the half width."""
+    cfg = ElbowConfig()
+    assert (cfg.half_width_deg, cfg.safety_margin_deg, cfg.stiffness_min, cfg.stiffness_max) == (50.0, 10.0, 10.0, 30.0)
+    assert cfg.alpha is None and cfg.d is None
+    assert cfg.safety_margin_rad == pytest.approx(D(10))
+    assert cfg.alpha_per_rad == pytest.approx(12.0 / D(50)) and cfg.d_rad == pytest.approx(0.75 * D(50))
+
+
+def test_half_width_may_be_a_half_turn_but_no_more() -> None:
+    """The half width is in (0, 180] deg: 180° (the whole circle) is accepted, anything above is refused."""
+    assert ElbowConfig(half_width_deg=180).half_width_rad == pytest.approx(math.pi)
+    assert ElbowConfig(half_width_deg=179.5).half_width_rad == pytest.approx(D(179.5))
+    with pytest.raises(ConfigError, match=r"half_width_deg must be in \(0, 180\]"):
+        ElbowConfig(half_width_deg=180.5)
+
+
+def test_clip_rom_margin_zero_clips_at_the_interval_and_negative_is_refused() -> None:
+    """With d_sg = 0 ROM_t is ROM ∩ interval itself ([E 10]/[E 11] without margin): ROM [-0.5, 1.5] in
+    [0, 1] → [0, 1]; a negative margin is refused naming ``margin``."""
+    rt = clip_rom(0.5, 1.0, Interval(0.0, 1.0, False), 0.0)
+    assert (rt.lo, rt.hi, rt.empty) == (0.0, 1.0, False)
+    with pytest.raises(InputError, match="margin must be >= 0"):
+        clip_rom(0.5, 1.0, Interval(0.0, 1.0, False), -0.1)
+
+
+def test_stiffness_of_a_zero_dimensional_array_is_a_float() -> None:
+    """A 0-d array is a single arm angle: the stiffness is a Python ``float``, at the inflection point d the
+    middle of the span (K_min + K_max)/2 = 20 N·m/rad, computed by the per-tick kernel's float specialisation
+    (with the JIT on, no second specialisation is compiled for the 0-d array)."""
+    cfg = ElbowConfig()
+    assert stiffness(0.4 + cfg.d_rad, 0.4, cfg) == pytest.approx(20.0)  # the float path, compiled once
+    before = len(getattr(sigmoid_stiffness, "signatures", ()))
+    k = stiffness(np.array(0.4 + cfg.d_rad), 0.4, cfg)
+    assert type(k) is float and k == pytest.approx(20.0)
+    assert len(getattr(sigmoid_stiffness, "signatures", ())) == before

@@ -159,3 +159,18 @@ def test_two_equal_row_kinds_are_two_rows(robot) -> None:
     p = ctrl.records.problem[0]
     assert p["n_hard"] == 2 and p["hard_C"].shape[0] == 2
     np.testing.assert_array_equal(p["hard_C"][0], p["hard_C"][1])
+
+
+def test_the_qp_strategy_keeps_its_elbow_row_beside_a_soft_row_kind(robot) -> None:
+    """The ``qp`` strategy with a soft row kind: level 2 has two soft rows, the kind's (the elbow height's
+    gradient, Pinocchio's central differences) and then the elbow's (∂ns/∂q)."""
+    z0 = elbow_z(robot, Q1)
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"), rows=[ElbowFloor(z_min=z0 - 0.1, soft=True)])
+    ctrl.reset(Q1)
+    assert ctrl.step(Q1).ok
+    p = ctrl.records.problem[0]
+    assert p["n_soft"] == 2 and p["n_hard"] == 0
+    h = 1e-6
+    fd = [(elbow_z(robot, Q1 + h * e) - elbow_z(robot, Q1 - h * e)) / (2 * h) for e in np.eye(7)]
+    np.testing.assert_allclose(p["soft_C"][0], fd, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(p["soft_C"][1], ctrl.evaluate(Q1).arm_angle_gradient, rtol=0, atol=1e-12)

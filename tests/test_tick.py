@@ -469,3 +469,24 @@ def test_no_kernel_of_any_module_loads_in_a_tick_after_the_constructor(robot, st
     assert cmd.status & Status.ELBOW_DROPPED
     after = kernel_signatures()
     assert {k: (before.get(k), n) for k, n in after.items() if n != before.get(k)} == {}
+
+
+def test_a_level_without_a_task_is_written_as_its_quadratic_and_linear_terms(robot) -> None:
+    """``set_level2`` of a level with only ``H`` and ``g``: no task rows, and the problem solves as the same
+    levels given to ``HierarchicalQP.solve``."""
+    from qpnso.qp.problem import new_problem, new_solution, problem_levels, set_level2
+
+    ctrl = Controller(robot, ControllerConfig(strategy="damped"))
+    ctrl.reset(Q0)
+    ctrl.step(Q0)
+    problem = new_problem(7)
+    problem[0]["A1"], problem[0]["b1"] = ctrl.records.problem[0]["A1"], ctrl.records.problem[0]["b1"]
+    problem[0]["lb"], problem[0]["ub"] = ctrl.records.problem[0]["lb"], ctrl.records.problem[0]["ub"]
+    g = np.linspace(-0.3, 0.3, 7)
+    set_level2(problem, Level(H=2.0 * np.eye(7), g=g))
+    p = problem[0]
+    assert p["has_level2"] and p["m2"] == 0 and p["use_H2"] and p["use_g2"]
+    solution = new_solution(7)
+    assert ctrl.qp.solve_problem(problem, solution) == ""
+    reference = ctrl.qp.solve(problem_levels(problem), p["lb"], p["ub"])
+    np.testing.assert_allclose(solution[0]["x"], reference.x, rtol=0, atol=1e-9)

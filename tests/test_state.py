@@ -94,3 +94,14 @@ def test_sanitize_state_zeroes_what_it_can_and_refuses_the_rest(evaluator) -> No
         bad = clean.copy()
         bad[0][field][index] = np.nan
         assert sanitize_state(bad[0]) == FLAG_INTERNAL_ERROR, field
+
+
+def test_binding_a_record_of_another_layout_is_refused(evaluator) -> None:
+    """The evaluator writes only into a record of its own layout, and its function only into a float64 vector
+    of its output's size: anything else is refused before a tick could write past it."""
+    with pytest.raises(ValueError, match="bind needs"):
+        evaluator.bind(np.zeros(2, evaluator.dtype))
+    with pytest.raises(ValueError, match="output 0 needs"):
+        evaluator._fn.use_output(0, np.zeros(3))
+    q = evaluator.robot.sample_configuration()
+    assert evaluator.record(q, np.zeros(7), np.zeros(6)).dtype == evaluator.dtype  # still bound as before

@@ -128,7 +128,7 @@ class StateEvaluator:
         ]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
-        self.dtype = state_dtype(robot.nq, max(room, sum(np.size(kind.bounds(robot)[0]) for kind in rows)))
+        self.dtype = state_dtype(robot.nq, parts[-2].numel())  # (the rows as padded by row_parts)
         assert stacked.numel() * 8 == self.dtype.itemsize  # the record is the output, field for field
         self._zero_velocity = np.zeros(robot.nq)
         self._fn = FastFunction(

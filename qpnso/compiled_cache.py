@@ -207,9 +207,17 @@ def _prune(current: Path) -> None:
             pass
 
 
+def jit_disabled() -> bool:
+    """True when Numba runs the kernels as Python (``NUMBA_DISABLE_JIT=1``): nothing compiles or is cached."""
+    return bool(numba.config.DISABLE_JIT)  # type: ignore[attr-defined]  # (set at run time, as CACHE_DIR)
+
+
 def numba_cache_is_cold() -> bool:
     """True when no kernel of this package's sources is cached yet (the keyed folder is empty or
-    missing): the next :class:`qpnso.Controller` compiles them all."""
+    missing): the next :class:`qpnso.Controller` compiles them all.  False when the JIT is disabled
+    (``NUMBA_DISABLE_JIT=1``: the kernels run as Python, nothing compiles)."""
+    if jit_disabled():
+        return False
     if _numba_dir is None or not _numba_dir.is_dir():
         return True
     return not any(_numba_dir.rglob("*.nbi"))

@@ -7,8 +7,10 @@ folder, no ``NUMBA_CACHE_DIR``), so what it sees is what a user's first runs see
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
+import io
 import os
 import pkgutil
 import shutil
@@ -19,6 +21,7 @@ import time
 from pathlib import Path
 
 import numba
+import numpy as np
 import pytest
 
 import qpnso
@@ -83,6 +86,7 @@ def test_kernel_recompiles_when_a_kernel_it_calls_in_another_module_changes(tmp_
     assert run() == before
 
 
+@pytest.mark.jit
 def test_every_kernel_is_cached_in_the_keyed_folder() -> None:
     """Every Numba kernel of every qpnso module (also those ``import qpnso`` does not import) is cached
     in the keyed folder, whose key hashes the kernel's module and every qpnso module whose objects it
@@ -176,6 +180,7 @@ exec {os.environ.get("CC", "cc")} "$@"
     assert len(calls.read_text().splitlines()) == 1  # one compiler for three processes
 
 
+@pytest.mark.jit
 def test_cold_start_says_what_compiles(tmp_path) -> None:
     """The first Controller on a machine (empty Numba cache) says on stderr, before it compiles, that it
     compiles the tick's kernels and about how long that takes.  The process is stopped once the line is
@@ -213,3 +218,39 @@ def test_cold_start_says_what_compiles(tmp_path) -> None:
         proc.wait()
     qpnso.Controller(qpnso.load_robot("lwr4p"))  # here, with this session's cache: compiled or loaded
     assert not compiled_cache.numba_cache_is_cold()
+
+
+_TICKS = """
+    import json, numpy as np, qpnso
+    robot = qpnso.load_robot("lwr4p")
+    out = {}
+    for strategy in ("qp", "damped"):
+        ctrl = qpnso.Controller(robot, qpnso.ControllerConfig(strategy=strategy))
+        q = np.radians([10, 40, -10, -70, 20, 50, 0])
+        ctrl.reset(q)
+        rows = []
+        for k in range(30):
+            cmd = ctrl.step(q, tool_twist=[0.02 * np.sin(0.1 * k), 0.01, 0, 0, 0, 0.05])
+            rows.append(cmd.dq.tolist() + cmd.tau.tolist() + [cmd.status.value])
+            q = q + 0.001 * cmd.dq
+        out[strategy] = rows
+    print(json.dumps(out))
+"""
+
+
+def test_the_kernels_run_as_python_without_the_jit(tmp_path) -> None:
+    """``NUMBA_DISABLE_JIT=1`` (a debugger in a kernel, mutation testing): the records are ``numpy.recarray``
+    views (:func:`qpnso.records.new_record`), the kernels run as Python, nothing is announced as compiling,
+    and 30 closed-loop ticks of ``qp`` and ``damped`` give the compiled kernels' commands and torques to
+    round-off, with the same status."""
+    import json
+
+    with contextlib.redirect_stdout(io.StringIO()) as printed:
+        exec(textwrap.dedent(_TICKS), {})  # this process: the compiled kernels
+    jit = json.loads(printed.getvalue())
+    python = _python(_TICKS, _env(tmp_path / "cache", NUMBA_DISABLE_JIT="1"), tmp_path)
+    assert "compiling the control tick" not in python.stderr
+    for strategy, rows in json.loads(python.stdout).items():
+        a, b = np.array(rows), np.array(jit[strategy])
+        np.testing.assert_array_equal(a[:, -1], b[:, -1])
+        np.testing.assert_allclose(a[:, :-1], b[:, :-1], rtol=0, atol=1e-9 * np.abs(b[:, :-1]).max())

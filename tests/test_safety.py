@@ -13,6 +13,7 @@ from qpnso.control.config import STRATEGIES, Status
 from qpnso.qp import HierarchicalQP, Level, LevelStatus
 from qpnso.qp.arrays import QPArrays
 from qpnso.qp.backends import active_set_solve
+from qpnso.records import new_record
 
 Q1 = np.radians([10, 40, -10, -70, 20, 50, 0])
 TOOL = [0.0, 0.0, 0.1]
@@ -332,7 +333,7 @@ def test_pose_correction_is_capped_only_for_large_errors() -> None:
     from qpnso.control.params import params_dtype
     from qpnso.control.tick import pose_correction
 
-    params = np.zeros(1, params_dtype(7))
+    params = new_record(params_dtype(7))
     gains = params[0]
     gains["pose_gain"], gains["pose_correction_speed"], gains["pose_correction_angular_speed"] = 200.0, 0.1, 1.0
     small = np.array([1e-6, -2e-6, 0.0, 1e-6, 0.0, 0.0])
@@ -397,10 +398,10 @@ def test_finish_command_by_hand(robot) -> None:
     params = tick_params(robot, ControllerConfig())
     P = params[0]
     P["dq_max"], P["tau_limit"], P["dt"] = 1.0, [10.0, 0.0, 10.0, 0, 0, 0, 0], 1e-3
-    report = np.zeros(1, report_dtype())
+    report = new_record(report_dtype())
     r = report[0]
     r["ns"], r["rom_lo"], r["rom_hi"] = 0.5, -0.1, 0.1
-    command = np.zeros(1, command_dtype(7))
+    command = new_record(command_dtype(7))
     c = command[0]
     q, g = np.zeros(7), np.ones(7)
     c["dq"], c["tau"] = [1.5, -0.5, -2.0, 0, 0, 0, 0], [12.0, 50.0, -3.0, 0, 0, 0, 0]

@@ -19,6 +19,7 @@ from qpnso.control.controller import Controller
 from qpnso.control.params import tick_params
 from qpnso.qp import Level, LevelStatus
 from qpnso.qp.backends import _Raw
+from qpnso.records import new_record
 
 DT = 1e-3
 Q0 = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2])
@@ -169,7 +170,7 @@ def test_elbow_advance_unwraps_the_arm_angle_and_ages_the_interval(robot) -> Non
     path = np.cumsum(rng.uniform(-0.5, 0.5, 400)) + 3.0  # crosses ±π many times
     memory = memory_at(path[0])
     m = memory[0]
-    state = np.zeros(1, qpnso.control.state.state_dtype(7))
+    state = new_record(qpnso.control.state.state_dtype(7))
     s = state[0]
     s["R"], s["p"] = random_rotation(rng, 3.0), rng.normal(size=3)
     unwrapped = []
@@ -450,6 +451,7 @@ def test_a_qpsolvers_back_end_answers_as_proxsuite(robot) -> None:
         q = q + DT * x.dq
 
 
+@pytest.mark.jit
 @pytest.mark.parametrize("strategy", ["qp", "damped"])
 def test_no_kernel_of_any_module_loads_in_a_tick_after_the_constructor(robot, strategy: str) -> None:
     """After the constructor, no tick loads or compiles a kernel of any qpnso module: the compiled tick, the

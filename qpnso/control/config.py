@@ -216,8 +216,10 @@ class ElbowState:
 
 
 def _status(bits: int) -> "Status":
-    """The :class:`Status` of a kernel's status bits (``Status.OK``, without a lookup, for none)."""
-    return Status(bits) if bits else Status.OK
+    """The :class:`Status` of a kernel's status bits (``Status.OK``, without a lookup, for none; a NumPy integer
+    read from a record, as the kernels give it without the JIT, made a Python int: ``Flag`` refuses a composite
+    ``numpy.int64``)."""
+    return Status(int(bits)) if bits else Status.OK
 
 
 _NOT_FINITE_MESSAGE = "the command was not finite: joints stopped"

@@ -55,6 +55,7 @@ from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
 from qpnso.qp import HierarchicalQP
 from qpnso.qp.problem import STOPPED, new_problem
+from qpnso.records import new_record
 
 
 @dataclass(slots=True)
@@ -130,7 +131,7 @@ class Controller:
         self._time_budget = cfg.solver_time_budget
         self._no_twist = np.zeros(6)  # never written (writable: a read-only array is another Numba type)
         hard_room, soft_room = self._hard_room, self._soft_room
-        self.tick = tick = np.zeros(1, tick_dtype(n, hard_room + soft_room, hard_room, soft_room))
+        self.tick = tick = new_record(tick_dtype(n, hard_room + soft_room, hard_room, soft_room))
         tick["params"] = tick_params(robot, cfg, self.rows, hard_room + soft_room)
         tick["problem"] = new_problem(n, hard_room, 1 + soft_room)
         self.evaluate.bind(tick["state"])

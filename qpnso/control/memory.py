@@ -13,6 +13,7 @@ import numpy as np
 from numba import njit
 
 from qpnso.elbow.rom import clipped_bounds, sigmoid_stiffness
+from qpnso.records import new_record
 
 TWO_PI = 2.0 * math.pi
 
@@ -46,7 +47,7 @@ def new_memory(n: int, ns: float, ns0: float, R_ref: np.ndarray, p_ref: np.ndarr
     """A run's memory at arm angle ``ns`` (rad) with its ROM centred on ``ns0`` (rad) and the tool's
     reference pose ``R_ref``, ``p_ref`` (m): no interval known (computed at the first tick), the cost
     step at rest.  A 1-element record array."""
-    memory = np.zeros(1, memory_dtype(n))
+    memory = new_record(memory_dtype(n))
     m = memory[0]
     m["ns"], m["ns0"], m["iv_age"] = ns, ns0, math.inf
     m["ref_R"], m["ref_p"] = R_ref, p_ref

@@ -12,6 +12,7 @@ import numpy as np
 from qpnso.control.rows import RowKind
 from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.model.robot import Robot
+from qpnso.records import new_record
 
 TOOL_MOVED_TOL = 1e-6
 """m (position) and unitless (rotation-matrix entries ≈ rad): a tool pose change below this keeps the
@@ -125,7 +126,7 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 
             row_soft=np.repeat([float(kind.soft) for kind in rows], sizes),
             n_rows=sum(sizes),
         )
-    params = np.zeros(1, params_dtype(robot.nq, max(room, sum(sizes))))
+    params = new_record(params_dtype(robot.nq, max(room, sum(sizes))))
     for name, value in values.items():
         field = params[name][0]
         if name.startswith("row_"):

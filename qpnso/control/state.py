@@ -23,6 +23,7 @@ from qpnso.control.rows import RowKind
 from qpnso.elbow.arm_angle import arm_angle_expression, elbow_points
 from qpnso.model.codegen import FastFunction
 from qpnso.model.costs import CostModel
+from qpnso.records import new_record
 
 
 def state_dtype(n: int, rows: int = 0) -> np.dtype:
@@ -136,7 +137,7 @@ class StateEvaluator:
             compile,
         )  # one input: one copy a tick
         self._zero_twist = np.zeros(6)
-        self.bind(np.zeros(1, self.dtype))
+        self.bind(new_record(self.dtype))
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until compiled code is used (benchmarks call this)."""

@@ -146,9 +146,10 @@ def stiffness(ns: float | np.ndarray, ns0: float, cfg: ElbowConfig) -> float | n
     """Elbow stiffness (N·m/rad), double symmetric sigmoid [E 6]:
     ``K = (Kmax − Kmin)/(1 + exp(α (d − |ns − ns0|))) + Kmin``."""
     value = ns if isinstance(ns, float) else np.asarray(ns, dtype=float)
-    if np.ndim(value) == 0:
-        value = float(value)
-    return sigmoid_stiffness(value, float(ns0), cfg.stiffness_min, cfg.stiffness_max, cfg.alpha_per_rad, cfg.d_rad)
+    params = (float(ns0), cfg.stiffness_min, cfg.stiffness_max, cfg.alpha_per_rad, cfg.d_rad)
+    if np.ndim(value) == 0:  # one arm angle: a float (also without the JIT, where the kernel gives NumPy's)
+        return float(sigmoid_stiffness(float(value), *params))
+    return sigmoid_stiffness(value, *params)
 
 
 @njit(cache=True)

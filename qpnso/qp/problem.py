@@ -23,6 +23,7 @@ import numpy as np
 
 from qpnso.errors import InputError
 from qpnso.qp.levels import Level
+from qpnso.records import new_record
 
 TASK_ROWS = 6
 """Rows of level 1: the tool twist."""
@@ -65,7 +66,7 @@ def problem_dtype(n: int, hard_rows: int = 1, soft_rows: int = 1) -> np.dtype:
 
 def new_problem(n: int, hard_rows: int = 1, soft_rows: int = 1) -> np.ndarray:
     """A zeroed problem record (a 1-element array: the form Numba reads cheaply), ``H2`` = I."""
-    problem = np.zeros(1, problem_dtype(n, hard_rows, soft_rows))
+    problem = new_record(problem_dtype(n, hard_rows, soft_rows))
     problem["H2"][0] = np.eye(n)
     return problem
 
@@ -92,7 +93,7 @@ def solution_dtype(n: int) -> np.dtype:
 
 def new_solution(n: int) -> np.ndarray:
     """A zeroed solution record (1-element array)."""
-    return np.zeros(1, solution_dtype(n))
+    return new_record(solution_dtype(n))
 
 
 def set_level2(problem: np.ndarray, level: Level | None) -> None:

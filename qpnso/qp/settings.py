@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from qpnso.records import new_record
+
 __all__ = ["QPSettings"]
 
 NATIVE_BACKEND = "proxsuite"
@@ -100,7 +102,7 @@ TOLERANCE_DTYPE = np.dtype(
 def tolerance_record(settings: QPSettings) -> np.ndarray:
     """``settings``' tolerances as a :data:`TOLERANCE_DTYPE` record (1-element array; a ``None``
     regularisation is 0: the solver resolves it before)."""
-    return np.array(
-        [(settings.rank_tol, settings.damping_threshold, settings.regularization or 0.0, settings.feasibility_tol)],
-        dtype=TOLERANCE_DTYPE,
-    )
+    record = new_record(TOLERANCE_DTYPE)
+    s = settings
+    record[0] = (s.rank_tol, s.damping_threshold, s.regularization or 0.0, s.feasibility_tol)
+    return record

@@ -55,6 +55,7 @@ from qpnso.qp.line import (
 from qpnso.qp.problem import SOLVED, STOPPED, TOOL_HELD, problem_levels
 from qpnso.qp.results import HQPResult, HQPStats, LevelResult, LevelStatus, level_failure
 from qpnso.qp.settings import NATIVE_BACKEND, QPSettings, tolerance_record
+from qpnso.records import new_record
 
 __all__ = ["HierarchicalQP"]
 
@@ -301,7 +302,7 @@ class HierarchicalQP:
     def _line_record(self, problem: np.ndarray) -> np.ndarray:
         """The line record for problems of this one's record type (made once: its views go to ProxSuite)."""
         if problem.dtype is not self._line_for:
-            line = np.zeros(1, line_dtype(self.n, problem.dtype["soft_l"].shape[0]))
+            line = new_record(line_dtype(self.n, problem.dtype["soft_l"].shape[0]))
             self._line, self._line_for, self._line_views = line, problem.dtype, {}
             self._line_nv, self._line_p = line["nv"], line["p"]
         return self._line

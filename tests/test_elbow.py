@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 import pinocchio as pin
@@ -106,6 +107,26 @@ def test_singular_configurations_are_reported(robot: Robot) -> None:
             E.arm_angle_gradient(robot, q)
     with pytest.raises(SingularityError, match="joint 4"):
         S.branch(robot, bent_shoulder_straight_elbow)
+
+
+def test_a_wrist_inside_the_cone_but_off_the_vertical_keeps_its_arm_angle(robot: Robot) -> None:
+    """Inside the wrist cone (``wrist_sin`` < sin 2°) the status is ``wrist_vertical``, but while the wrist is off
+    the vertical (``wrist_sin`` > 0) the arm angle is still defined and reported: the literal formula's value
+    (:func:`reference_arm_angle`), and the same as with no cone; exactly on the vertical it is NaN."""
+    from scipy.optimize import minimize_scalar
+
+    def pose(q2: float, q3: float) -> np.ndarray:
+        return np.array([0.3, q2, q3, 0.4, 0.0, 0.0, 0.0])
+
+    over = minimize_scalar(
+        lambda q2: E.arm_angle_status(robot, pose(q2, 0.0)).wrist_sin, bounds=(0.0, 0.4), method="bounded"
+    )
+    q = pose(over.x, 0.1)  # the wrist just over the shoulder, then joint 3 tilts it off the vertical
+    inside = E.arm_angle_status(robot, q)
+    assert inside.status == "wrist_vertical" and 0.0 < inside.wrist_sin < np.sin(np.radians(E.WRIST_CONE_DEG))
+    assert inside.value == pytest.approx(reference_arm_angle(robot, q), abs=1e-9)
+    assert inside.value == E.arm_angle_status(robot, q, wrist_cone_deg=0.0).value
+    assert math.isnan(E.arm_angle_status(robot, np.zeros(7)).value)  # straight up: exactly vertical
 
 
 def test_ik_round_trips(robot: Robot, rng) -> None:

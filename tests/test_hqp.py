@@ -590,6 +590,7 @@ def test_strictly_convex_is_a_positive_definite_hessian_in_z(seed):
     assert strictly_convex(qp, 1e-10) == bool(eig[0] > 1e-10 * max(1.0, eig[-1]))
 
 
+@pytest.mark.jit
 def test_warm_up_loads_every_cascade_kernel_and_forgets(tmp_path):
     """After ``HierarchicalQP.warm_up`` in a new process, both the general cascade's and the line fast path's
     kernels are loaded (a control tick that first takes a path must not load or compile one: 30–60 ms): solves
@@ -752,3 +753,92 @@ def test_level_answer_reports_the_violation_of_the_box() -> None:
     assert worst == pytest.approx(1.0) and slack.shape == (0,)
     np.testing.assert_allclose(x, [2.5, 0.0, 0.5])
     assert level_answer(np.array([0.9, -0.5, 0.0]), basis, qp, 0, 0)[1] == 0.0
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.5, 1.0, 2.0, 1e3])
+def test_a_hard_row_folds_into_the_line_whatever_its_scale(scale: float) -> None:
+    """A hard row ``l ≤ C(x0 + t·d)`` that the line's direction moves slowly (C d = 1e-8·‖C‖, far above the
+    1e-12·‖C‖ below which a row counts as still) with ``C x0`` 1e-9·‖C‖ below ``l``: the segment is narrowed to
+    t ≥ 0.1 (by hand: (l − C x0)/(C d)), not emptied, and the same for the row scaled by any factor."""
+    from qpnso.qp.line import fold_rows
+
+    x0, d = np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    C = scale * np.array([[1e-8, 1.0, 0.0]])  # C d = 1e-8·scale, C x0 = scale
+    l, u = np.array([scale * (1.0 + 1e-9)]), np.array([np.inf])
+    t_lo, t_hi = fold_rows(x0, d, -1.0, 1.0, C, l, u)
+    assert t_lo == pytest.approx(0.1, rel=1e-6) and t_hi == 1.0
+    # a row the direction does not move at all must hold at x0: here it does not, the segment is empty
+    still = scale * np.array([[1e-14, 1.0, 0.0]])
+    t_lo, t_hi = fold_rows(x0, d, -1.0, 1.0, still, l, u)
+    assert t_lo > t_hi
+
+
+@pytest.mark.parametrize("rho", [3.0, 1e6])
+def test_a_soft_row_that_binds_on_the_line_is_weighted_as_in_the_cascade(rho: float) -> None:
+    """Level 1 leaves a line of solutions (6×7 task); level 2 pulls along it (g) against a soft row with slack
+    weight ρ: the row binds, and the line fast path, the general cascade and DAQP on the general form give the
+    same answer and slack, that of the one-dimensional problem on the line ``x = x0 + t·d`` solved by hand:
+    ``min_t ½t²‖d‖² + t·gᵀd + ρσ²``, ``σ = C(x0 + t·d) − u > 0`` (ρ sets how far the row is crossed)."""
+    rng = np.random.default_rng(4)
+    J, v = rng.standard_normal((6, N)), 0.05 * rng.standard_normal(6)
+    x0 = np.linalg.pinv(J) @ v
+    d = np.linalg.svd(J)[2][-1]
+    row = rng.standard_normal(N)
+    row *= np.sign(row @ d)  # C d > 0
+    g = -5.0 * d  # level 2 pulls x along +d, the row's upper bound stops it
+    u = np.array([row @ x0 + 0.02])
+    levels = [Level(A=J, b=v), Level(H=np.eye(N), g=g, C=row[None], l=np.array([-np.inf]), u=u, slack_weight=rho)]
+    lb, ub = -np.ones(N), np.ones(N)
+    line = HierarchicalQP(N).solve(levels, lb, ub)
+    general = HierarchicalQP(N, settings=QPSettings(line_fast_path=False)).solve(levels, lb, ub)
+    exact = HierarchicalQP(N, backend="daqp", settings=QPSettings(line_fast_path=False)).solve(levels, lb, ub)
+    assert LINE_MESSAGE in line.levels[0].message and LINE_MESSAGE not in general.levels[0].message
+    cd, cx0, dd = row @ d, row @ x0, d @ d
+    # the 1-D optimum on the line, with the row violated (σ > 0): t (dd + 2ρ cd²) = −gᵀd + 2ρ cd (u − C x0)
+    t = (-(g @ d) + 2 * rho * cd * (u[0] - cx0)) / (dd + 2 * rho * cd**2)
+    sigma = cx0 + t * cd - u[0]
+    assert sigma > 1e-7
+    for res in (line, general, exact):
+        assert res.ok, res.status
+        np.testing.assert_allclose(res.x, x0 + t * d, atol=1e-7)
+        np.testing.assert_allclose(res.levels[1].slack, [sigma], atol=1e-7)
+    # the same problem as a tick's record (qpnso.qp.problem), solved on the line (line_setup) as the tick does
+    from qpnso.qp.problem import new_problem, new_solution, set_level2
+
+    problem, solution = new_problem(N), new_solution(N)
+    P = problem[0]
+    P["A1"], P["b1"], P["lb"], P["ub"] = J, v, lb, ub
+    set_level2(problem, Level(H=np.eye(N), g=g))
+    P["soft_C"][0], P["soft_l"][0], P["soft_u"][0], P["n_soft"], P["slack_weight"] = row, -np.inf, u[0], 1, rho
+    hqp = HierarchicalQP(N)
+    hqp._solve_problem_levels = lambda *args: pytest.fail("the general cascade ran, not the line")
+    assert hqp.solve_problem(problem, solution) == ""
+    np.testing.assert_allclose(solution[0]["x"], x0 + t * d, atol=1e-7)
+    assert solution[0]["slack_max"] == pytest.approx(sigma, abs=1e-7)
+
+
+def test_the_slack_of_a_soft_level_below_hard_rows_is_its_own_rows_violation() -> None:
+    """Level 1 (a task and a hard row, c₁·x ≤ 0.1) is inherited by level 2 as a hard row ahead of level 2's own
+    soft rows (they start at row 1 of its QP): level 2 asks c₂·x ≥ 5 and c₃·x ≤ −5 (each unreachable within
+    the bounds), and the slacks reported are each soft row's own violation at the answer (> 0), in its order."""
+    rng = np.random.default_rng(12)
+    J = rng.standard_normal((3, N))
+    c1, c2, c3 = rng.standard_normal((3, N))
+    levels = [
+        Level(A=J, b=0.05 * rng.standard_normal(3), C=c1[None], l=np.array([-np.inf]), u=np.array([0.1])),
+        Level(
+            H=np.eye(N),
+            C=np.vstack([c2, c3]),
+            l=np.array([5.0, -np.inf]),
+            u=np.array([np.inf, -5.0]),
+            slack_weight=10.0,
+        ),
+    ]
+    lb, ub = -0.2 * np.ones(N), 0.2 * np.ones(N)
+    for fast in (True, False):
+        res = HierarchicalQP(N, settings=QPSettings(line_fast_path=fast)).solve(levels, lb, ub)
+        assert res.ok, res.status
+        slack = res.levels[1].slack
+        np.testing.assert_allclose(slack, _soft_violation(levels[1], res.x), atol=1e-8)
+        assert np.all(slack > 1.0) and slack[0] != pytest.approx(slack[1])
+        assert c1 @ res.x <= 0.1 + 1e-8

@@ -201,7 +201,7 @@ def test_a_singular_cut_ends_the_interval_and_is_named(robot: Robot, joint: int,
 def test_limits_at_or_beyond_pi_go_to_the_numerical_method() -> None:
     """The closed form cannot read a limit at or beyond ±π (it aliased: ±7 rad limits bounded the interval at
     ±0.24 rad): such an arm's continuity interval is the numerical one (here a full circle, which a walk of
-    the self-motion with the IK confirms), and the closed-form arcs refuse it by name."""
+    the self-motion with the IK confirms, from ns − π to ns + π), and the closed-form arcs refuse it by name."""
     import copy
 
     from qpnso.errors import ModelError
@@ -212,6 +212,8 @@ def test_limits_at_or_beyond_pi_go_to_the_numerical_method() -> None:
     q = np.radians([10, 40, -10, -70, 20, 50, 0])
     interval = I.continuity_interval(wide, q)
     assert interval.method == "numerical" and interval.full_circle
+    ns = E.arm_angle(robot, q)  # a full circle is the circle around the start's arm angle, ends half a turn away
+    assert (interval.lo, interval.hi) == (ns - math.pi, ns + math.pi)
     with pytest.raises(ModelError, match=r"inside ±π; joint 1 has \[-7, 7\] rad"):
         I.feasible_intervals(wide, wide.tool_pose(q), S.branch(wide, q))
     assert I.continuity_interval(robot, q).method == "closed_form"  # real limits: unchanged

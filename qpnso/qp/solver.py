@@ -188,11 +188,13 @@ class HierarchicalQP:
         self.stats = HQPStats()
         self._backend = _make_backend(self.backend, self.settings, self.stats)
 
-    def warm_up(self) -> None:
+    def warm_up(self, line: bool = True) -> None:
         """Load (or compile, once per machine) every kernel of the cascade by solving two small ones (a
-        two-row task above a task, a cost and soft and hard rows: the general cascade; an (n−1)-row task
-        above a cost with a soft row: the line fast path), then :meth:`reset`: a control tick that first
-        takes a path must not pay for it (loading two kernels took 30–60 ms, measured)."""
+        two-row task above a task, a cost and soft and hard rows: the general cascade; with ``line``, an
+        (n−1)-row task above a cost with a soft row: :meth:`solve`'s line fast path), then :meth:`reset`: a
+        control tick that first takes a path must not pay for it (loading two kernels took 30–60 ms,
+        measured).  A :class:`~qpnso.control.controller.Controller` needs only the general cascade (its
+        ticks' line is :meth:`solve_problem`'s, warmed by its own dry ticks): ``line=False``."""
         n = self.n
         eye = np.eye(n)
         self.solve(
@@ -204,6 +206,9 @@ class HierarchicalQP:
             -np.ones(n),
             np.ones(n),
         )
+        if not line:
+            self.reset()
+            return
         self.solve(
             [
                 Level(A=eye[: n - 1], b=np.zeros(n - 1)),  # the line fast path's kernels
@@ -324,9 +329,13 @@ class HierarchicalQP:
         return views
 
     def _solve_problem_levels(self, problem: np.ndarray, solution: np.ndarray, time_budget: float | None) -> str:
-        """The problem through the general cascade (:meth:`solve` on its levels, unchecked), into ``solution``."""
+        """The problem through the general cascade (:meth:`solve`'s, on its levels, unchecked), into ``solution``.
+        Straight to the cascade: :func:`~qpnso.qp.line.line_setup` has found no line for this problem (or the
+        line fast path is off), and :meth:`solve`'s own line test, on the same level 1, would find none either."""
         P, S = problem[0], solution[0]
-        result = self.solve(problem_levels(problem), P["lb"], P["ub"], check=False, time_budget=time_budget)
+        t0 = time.perf_counter()
+        data = [_trusted_level(level) for level in problem_levels(problem)]
+        result = self._finish(self._solve_cascade(data, P["lb"], P["ub"], time_budget), len(data), t0)
         first, last = result.levels[0], result.levels[-1]
         S["out_of_time"] = result.out_of_time
         S["x1"] = first.x if first.x is not None else 0.0

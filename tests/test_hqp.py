@@ -274,24 +274,6 @@ def test_infeasible_soft_rows_take_slack(backend, fast):
     assert_lexicographic(res, [levels[0], level2], lb, ub, reference([Level(A=J, b=levels[0].b), level2], lb, ub))
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_soft_slack_of_a_higher_level_does_not_grow(backend):
-    rng = np.random.default_rng(9)
-    J = rng.standard_normal((4, N))
-    c = rng.standard_normal(N)
-    levels = [
-        Level(A=J, b=np.zeros(4)),
-        Level(C=c[None], l=np.array([3.0]), u=np.array([np.inf]), slack_weight=1e3),  # unreachable
-        Level(H=np.eye(N), g=-10 * c),
-    ]  # pulls c·x the other way... and must not win
-    lb, ub = -0.2 * np.ones(N), 0.2 * np.ones(N)
-    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
-    assert res.ok, res.status
-    assert res.levels[1].slack[0] > 0.1
-    assert 3.0 - c @ res.x <= res.levels[1].slack[0] + 1e-8
-    np.testing.assert_allclose(res.x, reference(levels, lb, ub)[-1], atol=1e-6)
-
-
 @pytest.mark.parametrize("fast", FAST)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_hard_infeasible_level_two_falls_back_to_level_one(backend, fast):
@@ -842,3 +824,70 @@ def test_the_slack_of_a_soft_level_below_hard_rows_is_its_own_rows_violation() -
         np.testing.assert_allclose(slack, _soft_violation(levels[1], res.x), atol=1e-8)
         assert np.all(slack > 1.0) and slack[0] != pytest.approx(slack[1])
         assert c1 @ res.x <= 0.1 + 1e-8
+
+
+@pytest.mark.parametrize("r", [1, 2, 3])
+def test_fix_signs_makes_each_columns_largest_entry_positive(r: int) -> None:
+    """The null-space basis' sign convention (a stable warm start from tick to tick): after ``_fix_signs`` each
+    column's largest-magnitude entry is positive, the columns are the same up to that sign, and a column that
+    already has it is left as it is."""
+    from qpnso.qp.cascade import _fix_signs
+
+    rng = np.random.default_rng(r)
+    Z = np.linalg.qr(rng.standard_normal((N, r)))[0]
+    Z[:, 0] *= np.sign(Z[np.abs(Z[:, 0]).argmax(), 0])  # column 0 already positive: kept
+    if r > 1:
+        Z[:, 1] *= -np.sign(Z[np.abs(Z[:, 1]).argmax(), 1])  # column 1 negative: flipped
+    fixed = _fix_signs(Z)
+    for j in range(r):
+        assert fixed[np.abs(fixed[:, j]).argmax(), j] > 0.0
+    np.testing.assert_array_equal(np.abs(fixed), np.abs(Z))
+    np.testing.assert_array_equal(fixed[:, 0], Z[:, 0])
+    if r > 1:
+        np.testing.assert_array_equal(fixed[:, 1], -Z[:, 1])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("side", ["lower", "upper"])
+def test_a_soft_rows_violation_on_either_side_does_not_grow_below(side: str, backend: str) -> None:
+    """A soft row that level 2 cannot meet (c·x ≥ 3, or its mirror c·x ≤ −3) is passed down to level 3 widened to
+    the value reached: level 3, pulling the other way, neither grows the violation nor fails (the side the row
+    is crossed on does not matter)."""
+    rng = np.random.default_rng(9)
+    J = rng.standard_normal((4, N))
+    c = rng.standard_normal(N)
+    s = 1.0 if side == "lower" else -1.0
+    l, u = (np.array([3.0]), np.array([np.inf])) if side == "lower" else (np.array([-np.inf]), np.array([-3.0]))
+    levels = [
+        Level(A=J, b=np.zeros(4)),
+        Level(C=c[None], l=l, u=u, slack_weight=1e3),  # unreachable within the bounds
+        Level(H=np.eye(N), g=-10 * s * c),  # pulls c·x the other way
+    ]
+    lb, ub = -0.2 * np.ones(N), 0.2 * np.ones(N)
+    two = HierarchicalQP(N, backend=backend).solve(levels[:2], lb, ub)
+    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    assert two.ok and res.ok, (two.status, res.status)
+    assert res.levels[1].slack[0] > 0.1
+    assert 3.0 - s * (c @ res.x) <= two.levels[1].slack[0] + 1e-8  # no larger than level 2 alone left it
+    np.testing.assert_allclose(res.x, reference(levels, lb, ub)[-1], atol=1e-6)
+
+
+def test_a_problem_without_a_level_two_is_level_one_alone() -> None:
+    """``set_level2(problem, None)`` after a level 2 was written: the record says no level 2 (``has_level2`` 0), its
+    general-cascade form is level 1 alone, and the tick's answer is level 1's least-norm exact solution."""
+    from qpnso.qp.problem import new_problem, new_solution, problem_levels, set_level2
+
+    rng = np.random.default_rng(2)
+    problem, solution = new_problem(N), new_solution(N)
+    P = problem[0]
+    P["A1"], P["b1"], P["lb"], P["ub"] = (
+        rng.standard_normal((6, N)),
+        0.05 * rng.standard_normal(6),
+        -np.ones(N),
+        np.ones(N),
+    )
+    set_level2(problem, Level(H=np.eye(N), g=rng.standard_normal(N)))
+    set_level2(problem, None)
+    assert P["has_level2"] == 0 and len(problem_levels(problem)) == 1
+    assert HierarchicalQP(N).solve_problem(problem, solution) == ""
+    np.testing.assert_allclose(solution[0]["x"], np.linalg.pinv(P["A1"]) @ P["b1"], atol=1e-12)

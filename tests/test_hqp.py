@@ -891,3 +891,26 @@ def test_a_problem_without_a_level_two_is_level_one_alone() -> None:
     assert P["has_level2"] == 0 and len(problem_levels(problem)) == 1
     assert HierarchicalQP(N).solve_problem(problem, solution) == ""
     np.testing.assert_allclose(solution[0]["x"], np.linalg.pinv(P["A1"]) @ P["b1"], atol=1e-12)
+
+
+def test_least_norm_point_of_a_segment_by_hand() -> None:
+    """Level 1's answer on its line (``x0 ⊥ d``): the segment's point nearest the origin, t clamped to [t_lo, t_hi]
+    (by hand: x0 itself when 0 is inside, else the nearer end, on either side)."""
+    from qpnso.qp.line import least_norm_point
+
+    x0, d = np.array([0.0, 1.0, 0.0]), np.array([0.6, 0.0, 0.8])
+    np.testing.assert_array_equal(least_norm_point(x0, d, -1.0, 2.0), x0)
+    np.testing.assert_allclose(least_norm_point(x0, d, 0.5, 2.0), [0.3, 1.0, 0.4], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(least_norm_point(x0, d, -2.0, -0.5), [-0.3, 1.0, -0.4], rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("weight", [0.5, 2.0])
+def test_a_weighted_level_two_is_refused_by_the_problem_record(weight: float) -> None:
+    """A strategy's level 2 is unweighted (the record has no weight field): a weight other than 1, larger or
+    smaller, is refused by name rather than silently dropped."""
+    from qpnso.qp.problem import new_problem, set_level2
+
+    with pytest.raises(InputError, match="unweighted"):
+        set_level2(new_problem(N), Level(A=np.eye(N), b=np.zeros(N), weight=weight))
+    set_level2(problem := new_problem(N), Level(A=np.eye(N), b=np.zeros(N), weight=1.0))
+    assert problem[0]["has_level2"] == 1 and problem[0]["m2"] == N

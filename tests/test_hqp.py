@@ -753,6 +753,8 @@ def test_a_hard_row_folds_into_the_line_whatever_its_scale(scale: float) -> None
     still = scale * np.array([[1e-14, 1.0, 0.0]])
     t_lo, t_hi = fold_rows(x0, d, -1.0, 1.0, still, l, u)
     assert t_lo > t_hi
+    # ... and holds it exactly on its bound (C x0 = l): the segment is kept whole
+    assert fold_rows(x0, d, -1.0, 1.0, still, np.array([scale]), u) == (-1.0, 1.0)
 
 
 @pytest.mark.parametrize("rho", [3.0, 1e6])
@@ -887,6 +889,8 @@ def test_a_problem_without_a_level_two_is_level_one_alone() -> None:
         np.ones(N),
     )
     set_level2(problem, Level(H=np.eye(N), g=rng.standard_normal(N)))
+    set_level2(problem, Level())  # a level 2 with nothing in it: level 1 alone as well
+    assert P["has_level2"] == 1 and len(problem_levels(problem)) == 1
     set_level2(problem, None)
     assert P["has_level2"] == 0 and len(problem_levels(problem)) == 1
     assert HierarchicalQP(N).solve_problem(problem, solution) == ""
@@ -914,3 +918,31 @@ def test_a_weighted_level_two_is_refused_by_the_problem_record(weight: float) ->
         set_level2(new_problem(N), Level(A=np.eye(N), b=np.zeros(N), weight=weight))
     set_level2(problem := new_problem(N), Level(A=np.eye(N), b=np.zeros(N), weight=1.0))
     assert problem[0]["has_level2"] == 1 and problem[0]["m2"] == N
+
+
+def test_a_level_two_rewritten_without_its_linear_term_forgets_it() -> None:
+    """A strategy's level 2 written with a linear term g, then without one (H only): the record keeps the old g's
+    numbers but not its use, and the tick's line (line_setup) answers as the general cascade on the record's
+    levels and as the level H alone given to ``solve``: the old g plays no part."""
+    from qpnso.qp.problem import new_problem, new_solution, problem_levels, set_level2
+
+    rng = np.random.default_rng(6)
+    problem, solution = new_problem(N), new_solution(N)
+    P = problem[0]
+    P["A1"], P["b1"], P["lb"], P["ub"] = (
+        rng.standard_normal((6, N)),
+        0.05 * rng.standard_normal(6),
+        -np.ones(N),
+        np.ones(N),
+    )
+    set_level2(problem, Level(H=np.eye(N), g=3.0 * rng.standard_normal(N)))
+    H = np.diag(rng.uniform(0.5, 2.0, N))
+    set_level2(problem, Level(H=H))
+    assert not P["use_g2"] and len(problem_levels(problem)) == 2 and problem_levels(problem)[1].g is None
+    hqp = HierarchicalQP(N)
+    hqp._solve_problem_levels = lambda *args: pytest.fail("the general cascade ran, not the line")
+    assert hqp.solve_problem(problem, solution) == ""
+    expected = HierarchicalQP(N, settings=QPSettings(line_fast_path=False)).solve(
+        [Level(A=P["A1"], b=P["b1"]), Level(H=H)], P["lb"], P["ub"]
+    )
+    np.testing.assert_allclose(solution[0]["x"], expected.x, atol=1e-8)

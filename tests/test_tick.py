@@ -492,3 +492,18 @@ def test_a_level_without_a_task_is_written_as_its_quadratic_and_linear_terms(rob
     assert ctrl.qp.solve_problem(problem, solution) == ""
     reference = ctrl.qp.solve(problem_levels(problem), p["lb"], p["ub"])
     np.testing.assert_allclose(solution[0]["x"], reference.x, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_the_tool_errors_are_the_pose_errors_magnitudes(robot, axis: int) -> None:
+    """The reference turned by 0.3 rad about the world's x, y or z axis and moved by 2 mm along the same axis: the
+    command's ``tool_error`` is (2e-3 m, 0.3 rad) whatever the axis (by hand: the norms of the position and
+    rotation errors, every component counted)."""
+    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    ctrl.reset(Q0)
+    state = ctrl.evaluate(Q0)
+    e = np.eye(3)[axis]
+    ctrl.ref_rotation = pin.exp3(0.3 * e) @ state.tool_rotation
+    ctrl.ref_position = state.tool_position + 2e-3 * e
+    cmd = ctrl.step(Q0)
+    assert cmd.tool_error[0] == pytest.approx(2e-3, abs=1e-12) and cmd.tool_error[1] == pytest.approx(0.3, abs=1e-12)

@@ -946,3 +946,58 @@ def test_a_level_two_rewritten_without_its_linear_term_forgets_it() -> None:
         [Level(A=P["A1"], b=P["b1"]), Level(H=H)], P["lb"], P["ub"]
     )
     np.testing.assert_allclose(solution[0]["x"], expected.x, atol=1e-8)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("form", ["task+H", "task+g", "task+H+g"])
+def test_a_middle_level_mixing_a_task_with_other_terms_keeps_its_optimum(form: str, backend: str) -> None:
+    """Level 2 combines a one-row task with a PSD quadratic that fights it and/or a linear term (with a linear term
+    its optimum is pressed against the bounds, its gradient along the free directions not zero), level 3 pulls
+    back along level 2's gradient: level 3 must leave
+    level 2's cost where level 2 put it, and each level's cost is the optimum found by a general nonlinear
+    solver level after level where a linear term presses level 2 on the bounds (there the equality-form
+    ``reference`` misses level 2's optimum by 0.68: it fixes the active bounds)."""
+    rng = np.random.default_rng(14)
+    J = rng.standard_normal((3, N))
+    a = rng.standard_normal((1, N))
+    L = a.T + 0.3 * rng.standard_normal((N, 1))  # the quadratic fights the task: neither gradient is zero
+    middle = Level(A=a, b=np.array([0.3]))
+    if "H" in form:
+        middle.H = L @ L.T
+    if "g" in form:
+        middle.g = 2.0 * rng.standard_normal(N)
+    pull = -5.0 * (middle.g if middle.g is not None else a[0])  # level 3 pulls level 2's way back
+    levels = [Level(A=J, b=0.1 * rng.standard_normal(3)), middle, Level(H=np.eye(N), g=pull)]
+    lb, ub = -0.3 * np.ones(N), 0.3 * np.ones(N)
+    res = HierarchicalQP(N, backend=backend).solve(levels, lb, ub)
+    assert res.ok, res.status
+    costs = _sequential_optimal_costs(levels, lb, ub)  # SciPy's SLSQP, level after level
+    for k, level in enumerate(levels):  # (each level's cost held to 1e-10 there: ~1e-5 of play below it)
+        assert level_cost(level, res.x) == pytest.approx(costs[k], abs=1e-4)
+    if "g" in form:  # a linear term over the free directions: a bound stops level 2
+        assert np.any(np.isclose(res.levels[1].x, lb) | np.isclose(res.levels[1].x, ub))
+    assert abs(level_cost(levels[1], res.x) - level_cost(levels[1], res.levels[1].x)) < 1e-9
+
+
+def _sequential_optimal_costs(levels: list[Level], lb: np.ndarray, ub: np.ndarray) -> list[float]:
+    """Level 1 a task met exactly (held as ``A x = b``); each level below at its optimal cost given the levels
+    above (their costs held to 1e-10), by SciPy's SLSQP: an independent, slow, general reference for small
+    cascades without rows."""
+    from scipy.optimize import minimize
+
+    first = levels[0]
+    held: list[dict] = [{"type": "eq", "fun": lambda x: first.A @ x - first.b}]
+    costs, x = [0.0], np.linalg.pinv(first.A) @ first.b
+    for level in levels[1:]:
+        r = minimize(
+            lambda x, level=level: level_cost(level, x),
+            x,
+            bounds=list(zip(lb, ub)),
+            constraints=held,
+            method="SLSQP",
+            options={"ftol": 1e-15, "maxiter": 2000},
+        )
+        x, best = r.x, float(r.fun)
+        costs.append(best)
+        held.append({"type": "ineq", "fun": lambda x, level=level, best=best: best + 1e-10 - level_cost(level, x)})
+    return costs

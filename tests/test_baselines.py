@@ -178,3 +178,17 @@ def test_rom_modulation_target_decays_after_the_elbow_reenters(robot) -> None:
     n = int(np.ceil(np.log(1e-9 / np.abs(first.b).max()) / np.log(0.99)))
     assert abs(ticks - n) <= 1
     assert ctrl.strategy.level2(state, inside) is None
+
+
+@pytest.mark.parametrize("target", [2.5, -2.5, 3.0])
+def test_the_rom_strategys_ik_step_reaches_a_set_point_beyond_two_radians(robot, target: float) -> None:
+    """The ``rom`` strategy's step towards an arm-angle set-point (closed-form IK at the same tool pose and branch):
+    ``q + step`` has the set-point as its arm angle (Pinocchio's), also for set-points beyond ±2 rad, where
+    wrapping the angle into (−π, π] must use 2π."""
+    import types
+
+    ctrl = Controller(robot, ControllerConfig(strategy="rom"))
+    ctrl.reset(Q1)
+    state = ctrl.evaluate(Q1)
+    step = ctrl.strategy._ik_step(state, types.SimpleNamespace(ns=reference_arm_angle(robot, Q1)), target)
+    assert reference_arm_angle(robot, Q1 + step) == pytest.approx(target, abs=1e-9)

@@ -1001,3 +1001,38 @@ def _sequential_optimal_costs(levels: list[Level], lb: np.ndarray, ub: np.ndarra
         costs.append(best)
         held.append({"type": "ineq", "fun": lambda x, level=level, best=best: best + 1e-10 - level_cost(level, x)})
     return costs
+
+
+@pytest.mark.parametrize("parts", ["A", "H", "g", "AH", "Ag", "Hg", "AHg"])
+def test_objective_gradient_is_the_level_costs_gradient(parts: str) -> None:
+    """The x-gradient a level passes to the cascade (which direction it gives up to the levels below) against
+    central finite differences of the level's cost ‖W^½(Ax − b)‖² + ½xᵀHx + gᵀx, for every mix of its terms
+    (weighted task, PSD quadratic, linear term)."""
+    from qpnso.qp.cascade import _objective_gradient
+    from qpnso.qp.levels import _validate_level
+
+    rng = np.random.default_rng(len(parts))
+    L = rng.standard_normal((N, 2))
+    level = Level(
+        A=rng.standard_normal((3, N)) if "A" in parts else None,
+        b=rng.standard_normal(3) if "A" in parts else None,
+        weight=np.array([1.0, 2.0, 0.5]) if "A" in parts else 1.0,
+        H=L @ L.T if "H" in parts else None,
+        g=rng.standard_normal(N) if "g" in parts else None,
+    )
+    x = rng.standard_normal(N)
+
+    def cost(x: np.ndarray) -> float:
+        c = 0.0
+        if level.A is not None:
+            r = level.A @ x - level.b
+            c += float(r @ (level.weight * r))
+        if level.H is not None:
+            c += 0.5 * float(x @ level.H @ x)
+        if level.g is not None:
+            c += float(level.g @ x)
+        return c
+
+    h = 1e-6
+    fd = np.array([(cost(x + h * e) - cost(x - h * e)) / (2 * h) for e in np.eye(N)])
+    np.testing.assert_allclose(_objective_gradient(_validate_level(level, N, "level"), x), fd, rtol=1e-7, atol=1e-7)

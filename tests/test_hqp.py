@@ -911,13 +911,18 @@ def test_least_norm_point_of_a_segment_by_hand() -> None:
 @pytest.mark.parametrize("weight", [0.5, 2.0])
 def test_a_weighted_level_two_is_refused_by_the_problem_record(weight: float) -> None:
     """A strategy's level 2 is unweighted (the record has no weight field): a weight other than 1, larger or
-    smaller, is refused by name rather than silently dropped."""
+    smaller, is refused by name rather than silently dropped; an unweighted task is written with its rows
+    (``m2``, not its columns)."""
     from qpnso.qp.problem import new_problem, set_level2
 
     with pytest.raises(InputError, match="unweighted"):
         set_level2(new_problem(N), Level(A=np.eye(N), b=np.zeros(N), weight=weight))
     set_level2(problem := new_problem(N), Level(A=np.eye(N), b=np.zeros(N), weight=1.0))
     assert problem[0]["has_level2"] == 1 and problem[0]["m2"] == N
+    A = np.arange(3 * N, dtype=float).reshape(3, N)  # a task of 3 rows: its rows, not its columns, counted
+    set_level2(problem, Level(A=A, b=np.ones(3)))
+    assert problem[0]["m2"] == 3
+    np.testing.assert_array_equal(problem[0]["A2"][:3], A)
 
 
 def test_a_level_two_rewritten_without_its_linear_term_forgets_it() -> None:

@@ -80,6 +80,9 @@ def test_cholesky_reports_an_indefinite_matrix():
     M = np.diag([1.0, 2.0, -1e-9, 3.0])
     assert cholesky(M, 0.0)[1] is False
     assert cholesky(np.zeros((3, 3)), 0.0)[1] is False
+    # the last pivot the only one at or below zero (nothing after it to turn NaN): still reported
+    assert cholesky(np.diag([1.0, 2.0, 3.0, -1e-9]), 0.0)[1] is False
+    assert cholesky(np.diag([1.0, 2.0, 3.0, 0.0]), 0.0)[1] is False
 
 
 @pytest.mark.parametrize("seed", range(10))

@@ -180,15 +180,28 @@ def test_rom_modulation_target_decays_after_the_elbow_reenters(robot) -> None:
     assert ctrl.strategy.level2(state, inside) is None
 
 
-@pytest.mark.parametrize("target", [2.5, -2.5, 3.0])
+@pytest.mark.parametrize("target", [2.5, -2.5, 3.0, 4.0, -4.0])
 def test_the_rom_strategys_ik_step_reaches_a_set_point_beyond_two_radians(robot, target: float) -> None:
     """The ``rom`` strategy's step towards an arm-angle set-point (closed-form IK at the same tool pose and branch):
-    ``q + step`` has the set-point as its arm angle (Pinocchio's), also for set-points beyond ±2 rad, where
-    wrapping the angle into (−π, π] must use 2π."""
+    ``q + step`` has the set-point as its arm angle (Pinocchio's, modulo 2π), also for set-points beyond ±2 rad
+    and ±π (an unwrapped ROM_t), where wrapping the angle into (−π, π] must use 2π."""
     import types
 
     ctrl = Controller(robot, ControllerConfig(strategy="rom"))
     ctrl.reset(Q1)
     state = ctrl.evaluate(Q1)
     step = ctrl.strategy._ik_step(state, types.SimpleNamespace(ns=reference_arm_angle(robot, Q1)), target)
-    assert reference_arm_angle(robot, Q1 + step) == pytest.approx(target, abs=1e-9)
+    assert abs(np.angle(np.exp(1j * (reference_arm_angle(robot, Q1 + step) - target)))) < 1e-9
+
+
+def test_gradient_baselines_desired_velocity_by_hand(robot) -> None:
+    """[M 20]: ``ω_des = −k_p ∇c / k_d`` (k_p = 3, k_d = 4: the ratio, not the product), unsaturated under a
+    large ω_max; saturated to ω_max along the same direction under a small one."""
+    state = None
+    for omega_max, kp, kd in ((1e6, 3.0, 4.0), (1e-3, 3.0, 4.0)):
+        config = ControllerConfig(strategy="gradient", gradient_kp=kp, gradient_kd=kd, gradient_omega_max=omega_max)
+        ctrl = Controller(robot, config)
+        state = ctrl.evaluate(Q1)
+        omega = -kp / kd * state.cost_gradient
+        expected = omega * min(1.0, omega_max / np.linalg.norm(omega))
+        np.testing.assert_allclose(ctrl.strategy.desired_velocity(state), expected, rtol=1e-12, atol=0)

@@ -1041,3 +1041,14 @@ def test_objective_gradient_is_the_level_costs_gradient(parts: str) -> None:
     h = 1e-6
     fd = np.array([(cost(x + h * e) - cost(x - h * e)) / (2 * h) for e in np.eye(N)])
     np.testing.assert_allclose(_objective_gradient(_validate_level(level, N, "level"), x), fd, rtol=1e-7, atol=1e-7)
+
+
+def test_warm_up_leaves_a_solver_that_answers_as_a_new_one() -> None:
+    """``HierarchicalQP.warm_up()`` (both forms: the general cascade and ``solve()``'s line) runs and forgets: the
+    next answers and counters are a new solver's."""
+    levels = [Level(A=np.eye(N)[: N - 1], b=0.1 * np.ones(N - 1)), Level(H=np.eye(N), g=np.linspace(-1, 1, N))]
+    warmed, new = HierarchicalQP(N), HierarchicalQP(N)
+    warmed.warm_up()
+    assert warmed.stats == new.stats
+    a, b = warmed.solve(levels, -np.ones(N), np.ones(N)), new.solve(levels, -np.ones(N), np.ones(N))
+    np.testing.assert_array_equal(a.x, b.x)

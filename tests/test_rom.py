@@ -129,3 +129,10 @@ def test_stiffness_of_a_zero_dimensional_array_is_a_float() -> None:
     k = stiffness(np.array(0.4 + cfg.d_rad), 0.4, cfg)
     assert type(k) is float and k == pytest.approx(20.0)
     assert len(getattr(sigmoid_stiffness, "signatures", ())) == before
+
+
+@pytest.mark.parametrize("half_width", [-0.5, -1e-9, -2.0])
+def test_clip_rom_refuses_a_negative_half_width(half_width: float) -> None:
+    """A ROM of negative half width (rad) is refused by name, however small the excess."""
+    with pytest.raises(InputError, match="half_width must be >= 0"):
+        clip_rom(0.5, half_width, Interval(-1.0, 1.0, False), 0.1)

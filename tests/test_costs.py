@@ -206,3 +206,11 @@ def test_explicit_scales_are_used_and_must_be_positive(lwr) -> None:
             qpnso.CostModel(lwr, scales={"inertia": bad})
     with pytest.raises(qpnso.InputError, match="potential speeds must be > 0"):
         qpnso.CostModel(lwr, potential_angular_speed=0.0)
+
+
+def test_unnormalised_costs_have_unit_scales(lwr) -> None:
+    """``normalize=False`` without scales: every term's scale is 1 (its value in SI units, unscaled)."""
+    from qpnso.model.costs import TERMS
+
+    cost = qpnso.CostModel(lwr, normalize=False, compile="off")
+    assert cost.scales == dict.fromkeys(TERMS, 1.0)

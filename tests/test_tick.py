@@ -507,3 +507,17 @@ def test_the_tool_errors_are_the_pose_errors_magnitudes(robot, axis: int) -> Non
     ctrl.ref_position = state.tool_position + 2e-3 * e
     cmd = ctrl.step(Q0)
     assert cmd.tool_error[0] == pytest.approx(2e-3, abs=1e-12) and cmd.tool_error[1] == pytest.approx(0.3, abs=1e-12)
+
+
+def test_the_arm_angle_is_singular_inside_the_wrist_cone_or_with_a_straight_elbow() -> None:
+    """``arm_angle_singular`` by hand, on records: a bent elbow with the wrist inside the cone (wrist_sin half the
+    threshold) is singular, as is a straight elbow with the wrist far out; both clear of the thresholds is not."""
+    from qpnso.control.memory import arm_angle_singular
+    from qpnso.control.params import params_dtype
+    from qpnso.control.state import state_dtype
+
+    s, P = new_record(state_dtype(7))[0], new_record(params_dtype(7))[0]
+    P["wrist_sin_min"], P["elbow_offset_min"] = 0.03, 0.01
+    for wrist_sin, offset, singular in ((0.015, 0.2, True), (0.5, 0.005, True), (0.5, 0.2, False), (0.03, 0.2, False)):
+        s["wrist_sin"], s["elbow_offset"] = wrist_sin, offset
+        assert arm_angle_singular(s, P) is singular, (wrist_sin, offset)

@@ -877,17 +877,10 @@ def test_a_soft_rows_violation_on_either_side_does_not_grow_below(side: str, bac
 def test_a_problem_without_a_level_two_is_level_one_alone() -> None:
     """``set_level2(problem, None)`` after a level 2 was written: the record says no level 2 (``has_level2`` 0), its
     general-cascade form is level 1 alone, and the tick's answer is level 1's least-norm exact solution."""
-    from qpnso.qp.problem import new_problem, new_solution, problem_levels, set_level2
+    from qpnso.qp.problem import problem_levels, set_level2
 
     rng = np.random.default_rng(2)
-    problem, solution = new_problem(N), new_solution(N)
-    P = problem[0]
-    P["A1"], P["b1"], P["lb"], P["ub"] = (
-        rng.standard_normal((6, N)),
-        0.05 * rng.standard_normal(6),
-        -np.ones(N),
-        np.ones(N),
-    )
+    problem, solution, P = _line_problem(rng)
     set_level2(problem, Level(H=np.eye(N), g=rng.standard_normal(N)))
     set_level2(problem, Level())  # a level 2 with nothing in it: level 1 alone as well
     assert P["has_level2"] == 1 and len(problem_levels(problem)) == 1
@@ -929,17 +922,10 @@ def test_a_level_two_rewritten_without_its_linear_term_forgets_it() -> None:
     """A strategy's level 2 written with a linear term g, then without one (H only): the record keeps the old g's
     numbers but not its use, and the tick's line (line_setup) answers as the general cascade on the record's
     levels and as the level H alone given to ``solve``: the old g plays no part."""
-    from qpnso.qp.problem import new_problem, new_solution, problem_levels, set_level2
+    from qpnso.qp.problem import problem_levels, set_level2
 
     rng = np.random.default_rng(6)
-    problem, solution = new_problem(N), new_solution(N)
-    P = problem[0]
-    P["A1"], P["b1"], P["lb"], P["ub"] = (
-        rng.standard_normal((6, N)),
-        0.05 * rng.standard_normal(6),
-        -np.ones(N),
-        np.ones(N),
-    )
+    problem, solution, P = _line_problem(rng)
     set_level2(problem, Level(H=np.eye(N), g=3.0 * rng.standard_normal(N)))
     H = np.diag(rng.uniform(0.5, 2.0, N))
     set_level2(problem, Level(H=H))
@@ -1052,3 +1038,19 @@ def test_warm_up_leaves_a_solver_that_answers_as_a_new_one() -> None:
     assert warmed.stats == new.stats
     a, b = warmed.solve(levels, -np.ones(N), np.ones(N)), new.solve(levels, -np.ones(N), np.ones(N))
     np.testing.assert_array_equal(a.x, b.x)
+
+
+def _line_problem(rng: np.random.Generator):
+    """A tick's problem record with a random 6×7 level 1 (a line of exact solutions) inside ±1 rad/s bounds and
+    no level 2; its solution record; the problem's element."""
+    from qpnso.qp.problem import new_problem, new_solution
+
+    problem, solution = new_problem(N), new_solution(N)
+    P = problem[0]
+    P["A1"], P["b1"], P["lb"], P["ub"] = (
+        rng.standard_normal((6, N)),
+        0.05 * rng.standard_normal(6),
+        -np.ones(N),
+        np.ones(N),
+    )
+    return problem, solution, P

@@ -56,6 +56,18 @@ def test_arm_angle_matches_literal_formula(robot: Robot, rng) -> None:
         assert E.arm_angle(robot, q) == pytest.approx(reference_arm_angle(robot, q), abs=1e-12)
 
 
+def test_an_arm_mounted_off_the_world_origin_has_the_literal_arm_angle(robot: Robot, rng) -> None:
+    """A cart puts the base anywhere: with the shoulder off the world z axis (x ≠ y ≠ 0) every component of
+    p_sw = p_w - p_s and p_se = p_e - p_s matters, and the arm angle still equals the literal [E 2]-[E 4]."""
+    model = robot.model.copy()
+    model.jointPlacements[1] = pin.SE3(np.eye(3), model.jointPlacements[1].translation + [0.3, -0.2, 0.05])
+    moved = Robot("moved", model, robot.tool_frame_id, robot.friction)
+    assert S.is_srs(moved)
+    for q in _regular_qs(moved, rng, 30):
+        assert E.arm_angle(moved, q) == pytest.approx(reference_arm_angle(moved, q), abs=1e-12)
+        assert E.arm_angle(moved, q) == pytest.approx(E.arm_angle(robot, q), abs=1e-12)  # the base only translated
+
+
 def test_zero_is_elbow_up(robot: Robot, rng) -> None:
     """cos ns > 0 exactly when the elbow is above the shoulder–wrist line."""
     data = robot.model.createData()

@@ -273,3 +273,28 @@ def test_numerical_options_are_frozen_and_end_walks_early() -> None:
     assert np.linalg.svd(robot.jacobian(q_end), compute_uv=False)[-1] < sigma * (1 - 1e-6)
     assert E.arm_angle(robot, q_end) == pytest.approx(end, abs=1e-12)
     assert np.abs(robot.tool_pose(q_end).homogeneous - pose.homogeneous).max() < 1e-9
+
+
+@pytest.mark.parametrize("side", ["min", "max"])
+def test_a_joint_out_of_its_limits_at_every_arm_angle_empties_its_arcs(side: str) -> None:
+    """Joint 4 of an S-R-S arm keeps its angle along the self-motion, so its Ψ_4 [E 7] has no limit crossing:
+    it is the full circle when joint 4 is inside its limits and empty when it is outside, on either side
+    (here the LWR4+ at q4 = −70° with joint 4's limit moved 10° past it). Checked against the closed-form IK
+    sampled over the circle."""
+    import copy
+
+    robot = load_robot("lwr4p")
+    q = np.radians([10, 40, -10, -70, 20, 50, 0])
+    pose, b = robot.tool_pose(q), S.branch(robot, q)
+    _, per = I.feasible_intervals(robot, pose, b, per_joint=True)
+    assert per[3] == [(-math.pi, math.pi)]
+    narrowed = copy.copy(robot)
+    narrowed.q_min, narrowed.q_max = robot.q_min.copy(), robot.q_max.copy()
+    if side == "min":
+        narrowed.q_min[3] = np.radians(-60)
+    else:
+        narrowed.q_max[3] = np.radians(-80)
+    psi, per = I.feasible_intervals(narrowed, pose, b, per_joint=True)
+    assert per[3] == [] and psi == []
+    joints = S.ik(robot, pose, np.linspace(-math.pi, math.pi, 73), b)
+    assert np.allclose(joints[:, 3], q[3], atol=1e-9)  # the sampled self-motion: q4 never moves

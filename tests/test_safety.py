@@ -127,11 +127,23 @@ def test_straight_up_gives_a_finite_command_and_says_why(controllers, strategy: 
         assert not cmd.status & (Status.QP_FAILED | Status.INTERNAL_ERROR), cmd.message
 
 
-def test_non_finite_qp_data_never_reach_the_solver() -> None:
-    qp = HierarchicalQP(2)
-    result = qp.solve([Level(A=np.eye(2), b=np.array([np.nan, 0.0]))], check=False)
-    assert not result.ok and result.levels[0].status is LevelStatus.SOLVER_ERROR
-    assert "non-finite" in result.levels[0].message and result.levels[0].iterations == 0
+@pytest.mark.parametrize("bad", ["b", "A", "A below"])
+def test_non_finite_qp_data_never_reach_the_solver(bad: str) -> None:
+    """A NaN or inf in a task's target or matrix (on the first level, where Z = I, or below it) is refused
+    before any back end or SVD sees it: that level fails as SOLVER_ERROR after 0 iterations, saying why."""
+    qp = HierarchicalQP(3)
+    A, b = np.eye(3)[:2].copy(), np.zeros(2)
+    if bad == "b":
+        b[0] = np.nan
+    else:
+        A[0, 1] = np.nan if bad == "A" else np.inf
+    levels = [Level(A=A, b=b)] if bad != "A below" else [Level(A=np.eye(3)[2:], b=np.ones(1)), Level(A=A, b=b)]
+    result = qp.solve(levels, check=False)
+    k = len(levels) - 1
+    assert not result.ok and result.levels[k].status is LevelStatus.SOLVER_ERROR
+    assert "non-finite" in result.levels[k].message and result.levels[k].iterations == 0
+    if k:
+        assert result.x == pytest.approx([0.0, 0.0, 1.0])  # the level above stands
 
 
 @pytest.mark.parametrize("where", ["tool_pose", "ns0", "complex_q", "complex_twist", "tool_pose_type", "text_q", "dq"])

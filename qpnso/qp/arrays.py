@@ -1,13 +1,17 @@
 """The named groups of arrays the QP's kernels take and give (docs/method.md §7.3–7.5): a level's parts
 (:class:`LevelParts`), one QP in its solver's variables (:class:`QPArrays`), the line of level 1's exact
 solutions (:class:`Segment`) and what the higher levels leave to a level of the cascade (:class:`Basis`,
-:class:`Inherited`).  Numba reads them by field, at no cost between kernels."""
+:class:`Inherited`), and whether a QP's data can be solved (:func:`qp_data_finite`).  Numba reads them by
+field, at no cost between kernels; from Python, a kernel takes or returns them at the cost of typing (or
+building) each group, so the kernels that Python calls per level return plain tuples."""
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 
 class LevelParts(NamedTuple):
@@ -65,3 +69,18 @@ class Inherited(NamedTuple):
     C: np.ndarray
     l: np.ndarray
     u: np.ndarray
+
+
+@njit(cache=True)
+def qp_data_finite(qp):
+    """Whether a QP's data (:class:`~qpnso.qp.arrays.QPArrays`) can be solved: ``H``, ``g``, ``C`` finite, no
+    NaN in the bounds (±inf allowed)."""
+    for a in (qp.H.ravel(), qp.g, qp.C.ravel()):
+        for x in a:
+            if not math.isfinite(x):
+                return False
+    for a in (qp.l, qp.u, qp.box_l, qp.box_u):
+        for x in a:
+            if x != x:
+                return False
+    return True

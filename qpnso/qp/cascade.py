@@ -63,14 +63,12 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
-from scipy.linalg import lapack as _lapack
 
 from qpnso.linalg import matmul, matvec
-from qpnso.qp.arrays import Basis, Inherited, LevelParts, QPArrays
+from qpnso.qp.arrays import Basis, Inherited, LevelParts, QPArrays, qp_data_finite
 from qpnso.qp.levels import Level, _LevelData, _validate_level
 from qpnso.qp.settings import QPSettings, tolerance_record
 
@@ -157,6 +155,7 @@ class LevelQP:
     n_slack: int
     slack_start: int  # first soft row of C
     bound_rows: int  # n if the bounds are the last rows of C, else 0
+    finite: bool = True  # the data can be solved (qp_data_finite): nothing that is not finite but ±inf bounds
 
     @property
     def r(self) -> int:
@@ -205,47 +204,44 @@ class LevelQP:
         )
 
 
-def _task_svd(data: _LevelData, cascade: Cascade) -> "TaskSVD":
-    """The level's weighted task in z, ``W^½ A Z`` (m, r), its singular values and right singular
-    vectors ``Vᵀ`` (r, r), and its residual at the higher levels' answer ``W^½(A x_prev − b)``;
-    empty arrays without a task or free direction."""
-    Z, r = cascade.Z, cascade.Z.shape[1]
-    if data.Aw is None or r == 0:
-        return TaskSVD(_no_rows(r), _NO_VECTOR, np.zeros((r, r)), _NO_VECTOR)
-    assert data.bw is not None  # a task has its b
-    At = data.Aw if cascade.full else data.Aw @ Z
-    r0 = -data.bw if cascade.depth == 0 else data.Aw @ cascade.x - data.bw
-    _, sigma, vt, info = _lapack.dgesdd(At, compute_uv=1, full_matrices=1)  # np.linalg.svd, less overhead
-    if info != 0:
-        _, sigma, vt = np.linalg.svd(At, full_matrices=True)
-    return TaskSVD(_c(At), sigma, _c(vt), _c(r0))
-
-
 def _c(a: np.ndarray) -> np.ndarray:
     """``a`` as a writable C-contiguous float array: the one array type the kernels are compiled for
     (another layout or a read-only array is another Numba signature, compiled in the tick that meets it)."""
     return a if a.flags.c_contiguous and a.flags.writeable else np.array(a, dtype=float, order="C")
 
 
-class TaskSVD(NamedTuple):
-    """A level's weighted task in z, ``W^½ A Z`` (m, r), its singular values ``sigma`` and right singular
-    vectors ``vt`` (r, r), and its residual ``r0`` at the higher levels' answer (:func:`_task_svd`)."""
-
-    At: np.ndarray
-    sigma: np.ndarray
-    vt: np.ndarray
-    r0: np.ndarray
+@njit(cache=True)
+def task_svd(level, basis):
+    """The level's weighted task in z, ``At = W^½ A Z`` (m, r), its singular values ``sigma`` (descending)
+    and right singular vectors ``vt`` (r, r), and its residual at the higher levels' answer
+    ``r0 = W^½(A x_prev − b)``; ``level`` a :class:`~qpnso.qp.arrays.LevelParts` (weights folded in),
+    ``basis`` a :class:`~qpnso.qp.arrays.Basis`.  Empty ``At``, ``sigma`` and ``r0`` without a task or a free
+    direction.  A task that is not finite has no singular values (the QP's linear term is then not finite,
+    and the level reports it: :attr:`LevelQP.finite`)."""
+    A, Z = level.A, basis.Z
+    r = Z.shape[1]
+    if A.shape[0] == 0 or r == 0:
+        return np.zeros((0, r)), np.zeros(0), np.zeros((r, r)), np.zeros(0)
+    At = A.copy() if basis.full else matmul(A, Z)
+    r0 = matvec(A, basis.x_prev) - level.b if basis.moved else -level.b
+    if not np.all(np.isfinite(At)):
+        return At, np.zeros(0), np.eye(r), r0
+    _, sigma, vt = np.linalg.svd(At)
+    return At, sigma, vt, r0
 
 
 @njit(cache=True)
-def level_qp_arrays(task, level, basis, inherited, tol):
-    """The arrays of :func:`build_level_qp`: ``task`` a :class:`TaskSVD`, ``level`` the level's
-    :class:`~qpnso.qp.arrays.LevelParts` (its task part unused: ``task`` has it), ``basis`` and
-    ``inherited`` what the levels above leave (:class:`~qpnso.qp.arrays.Basis`,
-    :class:`~qpnso.qp.arrays.Inherited`), ``tol`` the tolerances (:func:`qpnso.qp.settings.tolerance_record`).
+def level_qp_arrays(level, basis, inherited, tol):
+    """The arrays of :func:`build_level_qp`: ``level`` the level's :class:`~qpnso.qp.arrays.LevelParts`,
+    ``basis`` and ``inherited`` what the levels above leave (:class:`~qpnso.qp.arrays.Basis`,
+    :class:`~qpnso.qp.arrays.Inherited`), ``tol`` the tolerances (:func:`qpnso.qp.settings.tolerance_record`);
+    the task's SVD is :func:`task_svd`'s.
 
-    Returns ``(QPArrays, has_box, owned_z, free_z, has_task)``."""
-    At, sigma, vt, r0 = task
+    Returns ``(arrays, has_box, owned_z, free_z, has_task, finite)``: ``arrays`` the
+    :class:`~qpnso.qp.arrays.QPArrays` fields as a plain tuple (a named tuple returned to Python is built
+    through its class, unpickled on every call: 6 % of a cascade's instructions, measured), ``finite``
+    :func:`~qpnso.qp.arrays.qp_data_finite` of them."""
+    At, sigma, vt, r0 = task_svd(level, basis)
     H, g, C, l, u = level.H, level.g, level.C, level.l, level.u
     Z, full, x_prev, moved = basis.Z, basis.full, basis.x_prev, basis.moved
     T = tol[0]
@@ -256,7 +252,7 @@ def level_qp_arrays(task, level, basis, inherited, tol):
     Hv = np.zeros((nv, nv))
     gv = np.zeros(nv)
     k = 0
-    has_task = At.shape[0] > 0 and r > 0
+    has_task = At.shape[0] > 0
     if has_task:  # damped least squares (module docstring): owned directions σ > rank_tol·max(1, σ_max)
         threshold = rank_tol * max(1.0, sigma[0])
         while k < sigma.shape[0] and sigma[k] > threshold:  # sorted: a prefix
@@ -314,26 +310,29 @@ def level_qp_arrays(task, level, basis, inherited, tol):
     else:  # Z the identity: the bounds as a box on z (free slacks)
         box_l[:n] = inherited.lb - x_prev
         box_u[:n] = inherited.ub - x_prev
-    return QPArrays(Hv, gv, Cv, lo, hi, box_l, box_u), has_box, owned_z, free_z, has_task
+    finite = qp_data_finite(QPArrays(Hv, gv, Cv, lo, hi, box_l, box_u))
+    return (Hv, gv, Cv, lo, hi, box_l, box_u), has_box, owned_z, free_z, has_task, finite
 
 
-def build_level_qp(level: Level | _LevelData, cascade: Cascade, settings: QPSettings = QPSettings()) -> LevelQP:
+def build_level_qp(
+    level: Level | _LevelData, cascade: Cascade, settings: QPSettings = QPSettings(), tol: np.ndarray | None = None
+) -> LevelQP:
     """The QP of ``level`` in the free coordinates ``z`` (``x = x_prev + Z z``); pure.
 
     Hessian: ``Zᵀ(2AᵀWA + H)Z`` (task part damped, module docstring) ``+ μ`` on
     the free directions the task leaves; slack block ``I``.  Rows: inherited and
     own rows in z, then the bounds ``Z z`` unless ``Z`` is the identity (box).
-    The arithmetic is one kernel, :func:`level_qp_arrays`, after the task's SVD (:func:`_task_svd`).
+    The arithmetic, the task's SVD included, is one kernel, :func:`level_qp_arrays`.  ``tol``:
+    ``settings``' :func:`~qpnso.qp.settings.tolerance_record`, if the caller holds it already.
     """
     n = cascade.x.shape[0]
     data = level if isinstance(level, _LevelData) else _validate_level(level, n, "level")
     ns = data.n_slack
-    qp, has_box, owned_z, free_z, has_task = level_qp_arrays(
-        _task_svd(data, cascade),
+    qp, has_box, owned_z, free_z, has_task, finite = level_qp_arrays(
         level_parts(data, n),
         Basis(_c(cascade.x), _c(cascade.Z), cascade.full, cascade.depth > 0),
         Inherited(_c(cascade.lb), _c(cascade.ub), _c(cascade.C), _c(cascade.l), _c(cascade.u)),
-        tolerance_record(settings),
+        tolerance_record(settings) if tol is None else tol,
     )
     H, g, C, lo, hi, box_l, box_u = qp
     return LevelQP(
@@ -351,6 +350,7 @@ def build_level_qp(level: Level | _LevelData, cascade: Cascade, settings: QPSett
         ns,
         cascade.C.shape[0],
         0 if cascade.full else n,
+        finite,
     )
 
 

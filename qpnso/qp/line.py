@@ -31,8 +31,7 @@ import numpy as np
 from numba import njit
 
 from qpnso.linalg import dot, least_norm_line, matvec
-from qpnso.qp.arrays import Basis, LevelParts, QPArrays, Segment
-from qpnso.qp.backends import qp_data_finite
+from qpnso.qp.arrays import Basis, LevelParts, QPArrays, Segment, qp_data_finite
 from qpnso.qp.cascade import LevelQP, level_answer, level_parts
 from qpnso.qp.levels import _LevelData
 from qpnso.qp.settings import QPSettings
@@ -83,9 +82,12 @@ def task_line(A, b, lb, ub, rank_tol, damping):
     """``(code, x0, d, t_lo, t_hi)``: the exact solutions ``x0 + t·d``, ``t ∈ [t_lo, t_hi]``, of a
     plain (n−1)×n task ``A x = b`` within ``lb ≤ x ≤ ub`` (module docstring, *line fast path*);
     ``code`` :data:`LINE_SINGULAR` when ``σ_min`` may be below ``damping`` (``1/‖R⁻¹‖_F ≤ σ_min`` is
-    the test: conservative by at most √(n−1)), :data:`LINE_CUT` when the bounds miss the line."""
+    the test: conservative by at most √(n−1)) or the line is not finite (a NaN or inf in ``A`` or ``b``:
+    the general cascade then refuses the level's data), :data:`LINE_CUT` when the bounds miss the line."""
     x0, d, sigma_floor = least_norm_line(A, b)
     if not sigma_floor >= max(damping, rank_tol * max(1.0, math.sqrt(np.sum(A * A)))):
+        return LINE_SINGULAR, x0, d, 0.0, 0.0
+    if not np.all(np.isfinite(x0)):
         return LINE_SINGULAR, x0, d, 0.0, 0.0
     t_lo, t_hi = line_segment(x0, d, lb, ub)
     return (LINE_OK if t_lo <= t_hi else LINE_CUT), x0, d, t_lo, t_hi

@@ -21,7 +21,7 @@ import numpy as np
 
 from qpnso.errors import ConfigError, InputError
 from qpnso.qp.arrays import Basis, QPArrays, Segment
-from qpnso.qp.backends import _make_backend, _Raw, active_set_solve, finite_data_raw, solved_vector
+from qpnso.qp.backends import _make_backend, _Raw, active_set_solve, finite_data_raw, not_finite_raw, solved_vector
 from qpnso.qp.cascade import (
     _NO_VECTOR,
     Cascade,
@@ -157,7 +157,7 @@ class HierarchicalQP:
                 )
                 break
             level_start = time.thread_time() if time_budget is not None else 0.0
-            qp = build_level_qp(level, cascade, self.settings)
+            qp = build_level_qp(level, cascade, self.settings, self._tol)
             result = self._solve_level(k, level, qp)
             results.append(result)
             if not result.ok:
@@ -177,7 +177,7 @@ class HierarchicalQP:
         (:func:`active_set_solve`: exact, finite).  ``cascade.x`` itself if that fails (it is feasible)."""
         n = cascade.x.shape[0]
         data = _LevelData(None, None, None, None, _eye(n), None, None, None, None, None)
-        qp = build_level_qp(data, cascade, self.settings)
+        qp = build_level_qp(data, cascade, self.settings, self._tol)
         raw = active_set_solve(qp.arrays, self.settings.max_iter_active_set)
         result = self._check(data, qp, raw)
         return result.x if result.ok and result.x is not None else cascade.x  # (solved: x is set)
@@ -358,7 +358,7 @@ class HierarchicalQP:
         if qp.H.shape[0] == 0 or qp.r == 0:  # nothing left to choose: x = x_prev, slack as it falls
             raw = _Raw(np.zeros(qp.H.shape[0]), LevelStatus.SOLVED, 0, "no free direction left")
         else:
-            raw = finite_data_raw(qp.arrays) or self._backend.solve(k, qp)
+            raw = self._backend.solve(k, qp) if qp.finite else not_finite_raw()
         result = self._check(level, qp, raw)
         result.solve_time_s = time.perf_counter() - t_level
         return result

@@ -62,7 +62,7 @@ def test_a_row_kind_s_value_and_gradient_are_in_the_state(robot) -> None:
     rng = np.random.default_rng(0)
     for _ in range(5):
         q = robot.random_q(rng, margin=0.2)
-        s = ctrl.evaluate.record(q, np.zeros(7), np.zeros(6))[0]
+        s = ctrl.evaluate.record(q, np.zeros(7), np.zeros(6), np.zeros(6))[0]
         assert s["rows"][0] == pytest.approx(elbow_z(robot, q), abs=1e-12)
         h = 1e-6
         fd = [(elbow_z(robot, q + h * e) - elbow_z(robot, q - h * e)) / (2 * h) for e in np.eye(7)]

@@ -67,13 +67,13 @@ def test_the_record_is_the_function_buffer_field_for_field(evaluator) -> None:
     each field holds what the TickState of the same q holds."""
     q = evaluator.robot.sample_configuration()
     s = evaluator(q)
-    record = evaluator.record(q, np.zeros(7), np.zeros(6))
+    record = evaluator.record(q, np.zeros(7), np.zeros(6), np.zeros(6))
     assert record.shape == (1,) and record.dtype == evaluator.dtype
     view = TickState.of(q, record)
     for name in ("tool_rotation", "tool_position", "jacobian", "mass_matrix", "gravity", "cost_gradient"):
         np.testing.assert_array_equal(getattr(view, name), getattr(s, name))
     assert (view.cost, view.arm_angle, view.wrist_sin) == (s.cost, s.arm_angle, s.wrist_sin)
-    assert evaluator.record(q + 0.01, np.zeros(7), np.zeros(6)) is record  # the same buffer, overwritten
+    assert evaluator.record(q + 0.01, np.zeros(7), np.zeros(6), np.zeros(6)) is record  # the same buffer, overwritten
     assert not np.array_equal(view.jacobian, s.jacobian)
 
 
@@ -81,7 +81,7 @@ def test_sanitize_state_zeroes_what_it_can_and_refuses_the_rest(evaluator) -> No
     from qpnso.control.flags import FLAG_COST_UNDEFINED, FLAG_INTERNAL_ERROR
 
     q = evaluator.robot.sample_configuration()
-    clean = evaluator.record(q, np.zeros(7), np.zeros(6)).copy()
+    clean = evaluator.record(q, np.zeros(7), np.zeros(6), np.zeros(6)).copy()
     assert sanitize_state(clean[0]) == 0
     bad = clean.copy()
     bad[0]["cost_gradient"][2] = np.nan
@@ -104,4 +104,4 @@ def test_binding_a_record_of_another_layout_is_refused(evaluator) -> None:
     with pytest.raises(ValueError, match="output 0 needs"):
         evaluator._fn.use_output(0, np.zeros(3))
     q = evaluator.robot.sample_configuration()
-    assert evaluator.record(q, np.zeros(7), np.zeros(6)).dtype == evaluator.dtype  # still bound as before
+    assert evaluator.record(q, np.zeros(7), np.zeros(6), np.zeros(6)).dtype == evaluator.dtype  # still bound as before

@@ -31,12 +31,19 @@ import pinocchio as pin
 
 from qpnso.compiled_cache import announce_numba_if_cold
 from qpnso.control.config import Command, ControllerConfig, ElbowState, Status, _stamped, _status
-from qpnso.control.flags import ELBOW_BITS, FLAG_ELBOW_DROPPED, FLAG_INTERNAL_ERROR, FLAG_QP_DEADLINE, FLAG_QP_FAILED
+from qpnso.control.flags import (
+    ELBOW_BITS,
+    FLAG_ELBOW_DROPPED,
+    FLAG_INTERNAL_ERROR,
+    FLAG_QP_DEADLINE,
+    FLAG_QP_FAILED,
+    PREDICTION_MISSED,
+)
 from qpnso.control.memory import interval_failed, new_memory, store_interval
 from qpnso.control.params import tick_params
 from qpnso.control.rows import RowKind
 from qpnso.control.rows.kind import row_counts
-from qpnso.control.state import StateEvaluator
+from qpnso.control.state import StateEvaluator, sanitize_state
 from qpnso.control.tick import (
     TICK_NEED_INTERVAL,
     TICK_NOT_FINITE,
@@ -181,7 +188,7 @@ class Controller:
         """Start a run at ``q0`` (rad): holds its tool pose, centres the ROM on its arm angle.
 
         ``ns0`` (rad) overrides the ROM centre.  Everything a run remembers is made anew: the tick's
-        memory record, the previous command, the QP's warm starts, the strategy's filters.
+        memory record, the previous command and twist, the QP's warm starts, the strategy's filters.
         """
         q = self.robot.check_q(q0, "q0")
         if ns0 is not None:
@@ -193,6 +200,7 @@ class Controller:
             self.robot.nq, state.arm_angle, centre, state.tool_rotation, state.tool_position
         )
         self._dq_prev = np.zeros(self.robot.nq)
+        self._twist_prev = np.zeros(6)  # m/s, rad/s: the previous tick's tool twist (its change is predicted)
         self.qp.reset()  # warm starts and solver objects: a reset controller answers as a new one
         self.strategy.reset(q, state)
         self._reset_done = True
@@ -267,13 +275,14 @@ class Controller:
         if tool_twist is not None and tool_pose is None:
             self._advance_reference(twist)
         self._dq_prev = cmd.dq
+        self._twist_prev[:] = twist  # (a copy: the caller may reuse its array)
         self.step_count += 1
         return cmd
 
     def _tick(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float) -> Command:
         """The four steps of every tick (module docstring)."""
         rec, tick = self.records, self.tick
-        state = self.evaluate.record(qv, self._dq_prev, twist)  # (rec.state: written in place)
+        state = self.evaluate.record(qv, self._dq_prev, twist, self._twist_prev)  # (rec.state: written in place)
         rec.q, rec.dq_meas = qv, dq_meas
         code = begin_tick(qv, twist, tick)
         if code == TICK_NEED_INTERVAL:
@@ -287,14 +296,36 @@ class Controller:
         self.strategy.fill(rec)
         t1 = time.perf_counter()
         why = self.qp.solve_problem(rec.problem, rec.solution, self._time_budget)
-        solve_time = time.perf_counter() - t1
         bits = finish_tick(qv, dq_meas, tick)
+        if bits & PREDICTION_MISSED:
+            why, bits = self._second_pass(qv, dq_meas)
+        solve_time = time.perf_counter() - t1
         message = ""
         if why:
             bits |= FLAG_QP_FAILED | (FLAG_QP_DEADLINE if rec.solution[0]["out_of_time"] else 0)
             stopped = rec.solution[0]["outcome"] == STOPPED
             message = f"QP failed ({why}): " + ("joints stopped" if stopped else "tool held, no null-space motion")
         return self._command(bits, t0, message, solve_time)
+
+    def _second_pass(self, qv: np.ndarray, dq_meas: np.ndarray) -> tuple[str, int]:
+        """Level 1's second-order term ``½dt·J̇q̇`` taken again along the solved ``q̇`` (the tick's first solve was
+        farther than :data:`~qpnso.control.state.PREDICTION_TOLERANCE` from the predicted ``q̇``: a null-space
+        step the prediction could not see, e.g. level 1 leaving the joint bounds when a pull stops), then the
+        tick's problem solved and finished again (same level 2).  Returns the solve's failure (or "") and the
+        status bits.  The state is evaluated along ``q̇`` (the prediction of ``q̇`` with its own twist is ``q̇``);
+        a drift that is not finite there keeps the first solve."""
+        rec, tick = self.records, self.tick
+        s, P, p = rec.state[0], rec.params[0], rec.problem[0]
+        first = s["drift"].copy()
+        x = rec.solution[0]["x"].copy()
+        self.evaluate.record(qv, x, self._no_twist, self._no_twist)
+        sanitize_state(s)  # (q is the tick's: the rest of the state is as begin_tick left it)
+        if np.all(np.isfinite(s["drift"])):
+            p["b1"] += P["half_dt"] * (first - s["drift"])
+        else:
+            s["drift"] = first
+        why = self.qp.solve_problem(rec.problem, rec.solution, self._time_budget)
+        return why, finish_tick(qv, dq_meas, tick) & ~PREDICTION_MISSED
 
     def _command(self, bits: int, t0: float, message: str, solve_time: float) -> Command:
         """The :class:`Command` of this tick's records, stamped (:func:`qpnso.control.config._stamped`)."""

@@ -16,4 +16,6 @@ FLAG_ELBOW_OUTSIDE_ROM = 1024  # the arm angle is outside ROM_t this tick
 FLAG_INTERNAL_ERROR = 2048  # a tick could not be computed: joints stopped, τ = g(q)
 FLAG_QP_DEADLINE = 4096  # the cascade's time budget was spent: lower levels skipped (with QP_FAILED)
 
+PREDICTION_MISSED = 1 << 30  # not a status (no FLAG_): q̇ far from the predicted one, the tick is solved again
+
 ELBOW_BITS = FLAG_INTERVAL_STALE | FLAG_ROM_EMPTY  # the elbow bookkeeping's own bits

@@ -45,6 +45,7 @@ def state_dtype(n: int, rows: int = 0) -> np.dtype:
             ("A", f8, (n, n)),  # A(q), kg·m² (Pinocchio's crba)
             ("g", f8, n),  # g(q), N·m (Pinocchio's computeGeneralizedGravity)
             ("drift", f8, 6),  # J̇(q, q̇)q̇ at the predicted q̇ (m/s², rad/s²; world-aligned, tool point)
+            ("predicted", f8, n),  # q̇ predicted for the tick (rad/s, predicted_velocity): the drift's q̇
             ("rows", f8, m),  # h(q) of the row kinds' rows (their units; none: one 0)
             ("rows_gradient", f8, (m, n)),  # ∂h/∂q
         ]
@@ -69,6 +70,7 @@ class TickState:
     mass_matrix: np.ndarray  # (nq, nq) A(q), kg·m² (Pinocchio's crba)
     gravity: np.ndarray  # (nq,) g(q), N·m (Pinocchio's computeGeneralizedGravity)
     tool_drift: np.ndarray  # (6,) J̇(q, q̇)q̇ at the predicted q̇ (m/s², rad/s²; world-aligned, tool point)
+    predicted_velocity: np.ndarray  # (nq,) rad/s: the q̇ the drift is taken along (predicted_velocity)
     flags: int = 0  # status bits of sanitize_state: what was not finite and made safe
 
     @classmethod
@@ -89,6 +91,7 @@ class TickState:
             s["A"],
             s["g"],
             s["drift"],
+            s["predicted"],
             flags,
         )
 
@@ -112,7 +115,8 @@ class StateEvaluator:
         ns, measures = arm_angle_expression(sym, elbow_points(robot))
         total = cost.expression
         J = sym.frame_jacobian(robot.tool_frame_id)
-        dq, twist = ca.SX.sym("dq", robot.nq), ca.SX.sym("twist", 6)
+        dq, twist, twist_prev = ca.SX.sym("dq", robot.nq), ca.SX.sym("twist", 6), ca.SX.sym("twist_prev", 6)
+        predicted = predicted_velocity(J, dq, twist, twist_prev)
         parts = [
             tool.R.T,  # (transposed: ca.vec is column-major, the record row-major)
             tool.p,
@@ -124,7 +128,8 @@ class StateEvaluator:
             measures,
             sym.mass_matrix().T,
             sym.gravity_torque(),
-            tool_drift(sym.q, J, predicted_velocity(J, dq, twist)),
+            tool_drift(sym.q, J, predicted),
+            predicted,
             *row_parts(rows, sym, robot, room),
         ]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
@@ -133,7 +138,9 @@ class StateEvaluator:
         assert stacked.numel() * 8 == self.dtype.itemsize  # the record is the output, field for field
         self._zero_velocity = np.zeros(robot.nq)
         self._fn = FastFunction(
-            ca.Function(f"tick_{robot.name}", [ca.vertcat(sym.q, dq, twist)], [stacked], ["q_dq_twist"], ["state"]),
+            ca.Function(
+                f"tick_{robot.name}", [ca.vertcat(sym.q, dq, twist, twist_prev)], [stacked], ["q_dq_twists"], ["state"]
+            ),
             compile,
         )  # one input: one copy a tick
         self._zero_twist = np.zeros(6)
@@ -143,22 +150,32 @@ class StateEvaluator:
         """Block until compiled code is used (benchmarks call this)."""
         return self._fn.wait(timeout)
 
-    def __call__(self, q: np.ndarray, dq: np.ndarray | None = None, twist: np.ndarray | None = None) -> TickState:
+    def __call__(
+        self,
+        q: np.ndarray,
+        dq: np.ndarray | None = None,
+        twist: np.ndarray | None = None,
+        twist_prev: np.ndarray | None = None,
+    ) -> TickState:
         """State at ``q`` (rad; assumed validated by the caller), made safe (:func:`sanitize_state`), a copy;
-        the drift along the velocity predicted from the previous command ``dq`` (rad/s; None: 0) and this
-        tick's tool ``twist`` (m/s, rad/s; None: ``dq``'s own, so the drift is along ``dq`` itself) —
-        :func:`predicted_velocity`."""
+        the drift along the velocity predicted from the previous command ``dq`` (rad/s; None: 0), this tick's
+        tool ``twist`` and the previous tick's ``twist_prev`` (m/s, rad/s) — :func:`predicted_velocity`.
+        ``twist`` None: the drift is along ``dq`` itself; ``twist_prev`` None: ``J dq`` (``dq``'s tool part is
+        replaced by ``twist``)."""
         dq = self._zero_velocity if dq is None else dq
         if twist is None:
-            twist = self._zero_twist if dq is self._zero_velocity else self.robot.jacobian(q) @ dq
-        state = self.record(q, dq, twist).copy()
+            twist = twist_prev = self._zero_twist
+        elif twist_prev is None:
+            twist_prev = self.robot.jacobian(q) @ dq
+        state = self.record(q, dq, twist, twist_prev).copy()
         return TickState.of(q, state, sanitize_state(state[0]))
 
-    def record(self, q: np.ndarray, dq: np.ndarray, twist: np.ndarray) -> np.ndarray:
-        """The state at ``q`` (rad), the previous command ``dq`` (rad/s) and the tool ``twist`` (validated by
-        the caller) as a :func:`state_dtype` record (1-element array) in the record the evaluator writes
-        (:meth:`bind`), not yet made safe: read it before the next call, which overwrites it."""
-        self._fn.evaluate_in_place(q, dq, twist)
+    def record(self, q: np.ndarray, dq: np.ndarray, twist: np.ndarray, twist_prev: np.ndarray) -> np.ndarray:
+        """The state at ``q`` (rad), the previous command ``dq`` (rad/s), this tick's tool ``twist`` and the
+        previous tick's ``twist_prev`` (validated by the caller) as a :func:`state_dtype` record (1-element
+        array) in the record the evaluator writes (:meth:`bind`), not yet made safe: read it before the next
+        call, which overwrites it."""
+        self._fn.evaluate_in_place(q, dq, twist, twist_prev)
         return self._record
 
     def bind(self, record: np.ndarray) -> None:
@@ -185,15 +202,25 @@ PREDICTION_DAMPING = 1e-2
 tool part stays within ``|v|/(2ε)`` rad/s (the hierarchical QP's default damping threshold)."""
 
 
-def predicted_velocity(J: ca.SX, dq: ca.SX, twist: ca.SX) -> ca.SX:
-    """This tick's joint velocity as predicted before it is solved (rad/s): the previous command ``dq``
-    with its tool part replaced by this tick's ``twist``, ``dq + Jᵀ(JJᵀ + ε²I)⁻¹(v − J dq)``
-    (damped least squares, ε = :data:`PREDICTION_DAMPING`).  The null-space motion changes little from
-    one tick to the next, the tool's can jump (a surgeon's pull that stops): the second-order term along
-    the previous command alone left a held tool 1–2 µm off after a 2 m/s pull (the fuzz, measured)."""
-    return dq + ca.mtimes(
-        J.T, ca.solve(ca.mtimes(J, J.T) + PREDICTION_DAMPING**2 * ca.SX.eye(6), twist - ca.mtimes(J, dq))
-    )
+PREDICTION_TOLERANCE = 0.05
+"""rad/s: a solved ``q̇`` farther than this from the predicted one (any joint) has level 1's second-order term
+taken along the wrong velocity; the controller then takes it along the solved ``q̇`` and solves again
+(:meth:`qpnso.control.controller.Controller._second_pass`).  The term's error is about ``½dt²·|J̇|·|Δq̇|``: 1.3 µrad
+for the 1.42 rad/s miss at the end of a 2 m/s pull (the fuzz, seed 1, episode 129), under 0.1 µrad at this
+tolerance."""
+
+
+def predicted_velocity(J: ca.SX, dq: ca.SX, twist: ca.SX, twist_prev: ca.SX) -> ca.SX:
+    """This tick's joint velocity as predicted before it is solved (rad/s): the previous command ``dq`` with
+    its tool part changed by the change of the tool twist, ``dq + Jᵀ(JJᵀ + ε²I)⁻¹(v − v_prev)`` (damped least
+    squares, ε = :data:`PREDICTION_DAMPING`; ``v`` this tick's twist, ``v_prev`` the previous tick's).  The
+    null-space motion changes little from one tick to the next, the tool's can jump (a surgeon's pull that
+    stops): the second-order term along the previous command alone left a held tool 1–2 µm off after a 2 m/s
+    pull (the fuzz, measured).  Changing the tool part by the twist's change rather than replacing it with
+    ``v``: where level 1 does not meet ``v`` exactly (damped near a singularity), replacing it amplified the
+    residual by up to 1/ε, and the prediction missed the solved command by 1–2 rad/s on every tick of a held
+    tool near a singularity (the fuzz, seed 3)."""
+    return dq + ca.mtimes(J.T, ca.solve(ca.mtimes(J, J.T) + PREDICTION_DAMPING**2 * ca.SX.eye(6), twist - twist_prev))
 
 
 def tool_drift(q: ca.SX, J: ca.SX, velocity: ca.SX) -> ca.SX:

@@ -36,6 +36,7 @@ from qpnso.control.flags import (
     FLAG_ROM_EMPTY,
     FLAG_TOOL_LIMITED,
     FLAG_TORQUE_SATURATED,
+    PREDICTION_MISSED,
 )
 from qpnso.control.memory import (
     arm_angle_singular,
@@ -49,7 +50,7 @@ from qpnso.control.params import params_dtype
 from qpnso.control.rows.elbow import elbow_row
 from qpnso.control.rows.joint_limits import velocity_bounds
 from qpnso.control.rows.kind import add_rows
-from qpnso.control.state import sanitize_state, state_dtype
+from qpnso.control.state import PREDICTION_TOLERANCE, sanitize_state, state_dtype
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, nullspace_part
 from qpnso.qp.problem import SOLVED, problem_dtype, solution_dtype
 
@@ -371,7 +372,9 @@ def finish_tick(q, dq_meas, tick):
     null-space projector, :func:`qpnso.linalg.dynamically_consistent_projection`; ``τ_null`` the strategy's
     law in its command, against the measured ``dq_meas``), written into its command; then every tick's last
     step (:func:`finish_command`).  Returns the status bits: the report's, :func:`answer_bits` of a solved QP
-    and the finishing ones."""
+    and the finishing ones, and :data:`~qpnso.control.flags.PREDICTION_MISSED` (internal) when the solved
+    ``q̇`` of a tool that is not limited is farther than :data:`~qpnso.control.state.PREDICTION_TOLERANCE` from
+    the one level 1's second-order term was taken along (a limited tool is off its reference anyway)."""
     t = tick[0]
     s, P, S, r, c = t.state, t.params, t.solution, t.report, t.command
     dq = c.dq
@@ -382,4 +385,6 @@ def finish_tick(q, dq_meas, tick):
     bits = r.bits
     if S.outcome == SOLVED:
         bits |= answer_bits(S.tool_residual, S.slack_max)
+        if not bits & FLAG_TOOL_LIMITED and np.max(np.abs(S.x - s.predicted)) > PREDICTION_TOLERANCE:
+            bits |= PREDICTION_MISSED
     return bits | finish_command(q, c, s.g, P, r)

@@ -60,6 +60,13 @@ def test_every_field_matches_its_independent_computation(evaluator, rng) -> None
         pin.forwardKinematics(robot.model, data, q, predicted, np.zeros(7))
         a = pin.getFrameClassicalAcceleration(robot.model, data, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED)
         np.testing.assert_allclose(evaluator(q, dq, twist).tool_drift, a.vector, atol=1e-12)
+        previous = rng.normal(size=6)  # the previous tick's twist: the tool part changes by the twist's change
+        predicted = dq + J.T @ np.linalg.solve(J @ J.T + PREDICTION_DAMPING**2 * np.eye(6), twist - previous)
+        pin.forwardKinematics(robot.model, data, q, predicted, np.zeros(7))
+        a = pin.getFrameClassicalAcceleration(robot.model, data, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED)
+        changed = evaluator(q, dq, twist, previous)
+        np.testing.assert_allclose(changed.tool_drift, a.vector, atol=1e-12)
+        np.testing.assert_allclose(changed.predicted_velocity, predicted, atol=1e-12)
 
 
 def test_the_record_is_the_function_buffer_field_for_field(evaluator) -> None:

@@ -198,7 +198,8 @@ def test_gradient_baselines_desired_velocity_by_hand(robot) -> None:
     """[M 20]: ``ω_des = −k_p ∇c / k_d`` (k_p = 3, k_d = 4: the ratio, not the product), unsaturated under a
     large ω_max; saturated to ω_max along the same direction under a small one."""
     state = None
-    for omega_max, kp, kd in ((1e6, 3.0, 4.0), (1e-3, 3.0, 4.0)):
+    small = 0.5 * 4.0 / np.linalg.norm(Controller(robot, ControllerConfig()).evaluate(Q1).cost_gradient)
+    for omega_max, kp, kd in ((1e6, 3.0, 4.0), (1e-3, 3.0, 4.0), (1e-3, small, 4.0)):  # the last: ‖ω_des‖ = 0.5
         config = ControllerConfig(strategy="gradient", gradient_kp=kp, gradient_kd=kd, gradient_omega_max=omega_max)
         ctrl = Controller(robot, config)
         state = ctrl.evaluate(Q1)

@@ -1054,3 +1054,30 @@ def _line_problem(rng: np.random.Generator):
         np.ones(N),
     )
     return problem, solution, P
+
+
+def test_the_solution_record_says_how_each_outcome_ended() -> None:
+    """The three outcomes of a tick's problem, on both paths: solved (level 2 too); level 2 failed (``TOOL_HELD``,
+    not ``SOLVED``: the answer is level 1's); level 1 failed (``STOPPED``: ``x`` and ``x1`` zero).  On the general
+    cascade without soft rows, ``slack_max`` is −1 (nothing to report), as on the line."""
+    from qpnso.qp.problem import SOLVED, STOPPED, TOOL_HELD, set_level2
+    from qpnso.qp.settings import QPSettings
+
+    for fast in (True, False):
+        rng = np.random.default_rng(5)
+        qp = HierarchicalQP(N, settings=QPSettings(line_fast_path=fast))
+        problem, solution, P = _line_problem(rng)
+        assert qp.solve_problem(problem, solution) == ""
+        S = solution[0]
+        assert S["outcome"] == SOLVED and S["slack_max"] == -1.0
+        set_level2(problem, Level(H=np.eye(N), g=np.full(N, np.nan)))
+        assert qp.solve_problem(problem, solution) != ""
+        assert S["outcome"] == TOOL_HELD and S["outcome"] not in (SOLVED, STOPPED)
+        np.testing.assert_allclose(S["x"], np.linalg.pinv(P["A1"]) @ P["b1"], atol=1e-9)
+        set_level2(problem, None)
+        P["A1"][0, 0] = np.nan
+        solution[0]["x1"] = 7.0  # (left from an earlier tick: must not survive)
+        assert qp.solve_problem(problem, solution) != ""
+        assert S["outcome"] == STOPPED
+        np.testing.assert_array_equal(S["x"], 0.0)
+        np.testing.assert_array_equal(S["x1"], 0.0)

@@ -122,6 +122,8 @@ def test_user_work_closed_form():
     assert user_work_per_metre(w6, v6, t, p) == pytest.approx(4.0, rel=1e-3)
     with pytest.raises(InputError, match="both be"):
         user_work_per_metre(f, v6, t, p)
+    with pytest.raises(InputError, match="t needs at least 2 samples, got 1"):  # named, not "different lengths"
+        user_work_per_metre(f[:2], v[:2], t[:1], p[:2])
 
 
 def test_user_work_sinusoid():

@@ -77,7 +77,14 @@ def test_setpoint_saturates() -> None:
 def test_config_validation_and_units() -> None:
     cfg = ElbowConfig(half_width_deg=10, safety_margin_deg=10)
     assert cfg.half_width_rad == pytest.approx(D(10)) and cfg.safety_margin_rad == pytest.approx(D(10))
-    for bad in ({"half_width_deg": -1}, {"stiffness_min": 40.0}, {"alpha": 0.0}, {"safety_margin_deg": float("nan")}):
+    for bad in (
+        {"half_width_deg": -1},
+        {"stiffness_min": 40.0},
+        {"alpha": 0.0},
+        {"safety_margin_deg": float("nan")},
+        {"safety_margin_deg": -0.5},  # (a negative value close to 0 too)
+        {"stiffness_min": -0.5},
+    ):
         with pytest.raises(ConfigError):
             ElbowConfig(**bad)
 

@@ -53,6 +53,10 @@ def test_the_damper_by_hand() -> None:
     assert damper(-0.1, 0.0, 1.0, 20.0, 0.2) == (0.2, pytest.approx(22.0))  # far below: at most 0.2
     assert damper(1.1, 0.0, 1.0, 20.0, 0.2) == (pytest.approx(-22.0), -0.2)
     assert damper(0.0, 0.0, np.inf, 20.0, 0.2) == (0.0, np.inf)
+    from qpnso.control.config import ControllerConfig
+    from qpnso.control.rows import RowKind
+
+    assert RowKind().gain == ControllerConfig().joint_limit_gain == 20.0  # one γ by default (docs/method.md §7.1)
 
 
 def test_a_row_kind_s_value_and_gradient_are_in_the_state(robot) -> None:

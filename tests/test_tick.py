@@ -189,6 +189,9 @@ def test_elbow_advance_unwraps_the_arm_angle_and_ages_the_interval(robot) -> Non
     # the same pose keeps the interval at any age; a moved tool renews it once it is 10 ticks old
     assert answers == [False] * 12 + [True] * 12
     assert m["iv_age"] == 24
+    fresh = memory_at(0.0)  # none known and the first attempt failed: the next one only 10 ticks later
+    M.interval_failed(fresh)
+    assert [M.elbow_advance(s, fresh[0], P) for _ in range(12)] == [False] * 9 + [True] * 3
 
 
 def test_elbow_bounds_are_the_shifted_interval_clipped_and_the_sigmoid(robot) -> None:
@@ -521,4 +524,4 @@ def test_the_arm_angle_is_singular_inside_the_wrist_cone_or_with_a_straight_elbo
     P["wrist_sin_min"], P["elbow_offset_min"] = 0.03, 0.01
     for wrist_sin, offset, singular in ((0.015, 0.2, True), (0.5, 0.005, True), (0.5, 0.2, False), (0.03, 0.2, False)):
         s["wrist_sin"], s["elbow_offset"] = wrist_sin, offset
-        assert arm_angle_singular(s, P) is singular, (wrist_sin, offset)
+        assert bool(arm_angle_singular(s, P)) == singular, (wrist_sin, offset)  # (np.bool_ without the JIT)

@@ -254,7 +254,7 @@ def level_qp_arrays(level, basis, inherited, tol):
     k = 0
     has_task = At.shape[0] > 0
     if has_task:  # damped least squares (module docstring): owned directions σ > rank_tol·max(1, σ_max)
-        threshold = rank_tol * max(1.0, sigma[0])
+        threshold = rank_tol * max(1.0, sigma[0] if sigma.shape[0] else 0.0)  # (none: a task not finite)
         while k < sigma.shape[0] and sigma[k] > threshold:  # sorted: a prefix
             k += 1
         for p in range(k):

@@ -342,7 +342,7 @@ def test_the_pull_that_stopped_next_to_the_joint_bounds_leaves_the_tool_held(mon
     assert report.counts["drift"] == 0 and report.drift_checked > 500
 
     def first_solve_kept(self, qv, dq_meas):
-        return "", finish_tick(qv, dq_meas, self.tick) & ~PREDICTION_MISSED
+        return "", finish_tick(qv, dq_meas, self.tick) & ~PREDICTION_MISSED, 0.0
 
     monkeypatch.setattr(Controller, "_second_pass", first_solve_kept)
     assert run_fuzz(episode).counts["drift"] == 1

@@ -480,7 +480,7 @@ def test_a_baseline_starting_from_rest_does_not_drag_the_held_tool(robot, monkey
     from qpnso.control.tick import finish_tick
 
     def first_solve_kept(self, qv, dq_meas):
-        return "", finish_tick(qv, dq_meas, self.tick) & ~PREDICTION_MISSED
+        return "", finish_tick(qv, dq_meas, self.tick) & ~PREDICTION_MISSED, 0.0
 
     monkeypatch.setattr(Controller, "_second_pass", first_solve_kept)
     assert _held_tool_worst_error(robot, ControllerConfig(strategy="elbow-up"), q0) < 1e-7

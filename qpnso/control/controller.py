@@ -296,10 +296,11 @@ class Controller:
         self.strategy.fill(rec)
         t1 = time.perf_counter()
         why = self.qp.solve_problem(rec.problem, rec.solution, self._time_budget)
+        solve_time = time.perf_counter() - t1
         bits = finish_tick(qv, dq_meas, tick)
         if bits & PREDICTION_MISSED:
-            why, bits = self._second_pass(qv, dq_meas)
-        solve_time = time.perf_counter() - t1
+            why, bits, again = self._second_pass(qv, dq_meas)
+            solve_time += again
         message = ""
         if why:
             bits |= FLAG_QP_FAILED | (FLAG_QP_DEADLINE if rec.solution[0]["out_of_time"] else 0)
@@ -307,13 +308,13 @@ class Controller:
             message = f"QP failed ({why}): " + ("joints stopped" if stopped else "tool held, no null-space motion")
         return self._command(bits, t0, message, solve_time)
 
-    def _second_pass(self, qv: np.ndarray, dq_meas: np.ndarray) -> tuple[str, int]:
+    def _second_pass(self, qv: np.ndarray, dq_meas: np.ndarray) -> tuple[str, int, float]:
         """Level 1's second-order term ``½dt·J̇q̇`` taken again along the solved ``q̇`` (the tick's first solve was
         farther than :data:`~qpnso.control.state.PREDICTION_TOLERANCE` from the predicted ``q̇``: a null-space
         step the prediction could not see, e.g. level 1 leaving the joint bounds when a pull stops), then the
-        tick's problem solved and finished again (same level 2).  Returns the solve's failure (or "") and the
-        status bits.  The state is evaluated along ``q̇`` (the prediction of ``q̇`` with its own twist is ``q̇``);
-        a drift that is not finite there keeps the first solve."""
+        tick's problem solved and finished again (same level 2).  Returns the solve's failure (or ""), the
+        status bits and the solve's wall time (s).  The state is evaluated along ``q̇`` (with no change of
+        twist, the predicted velocity is ``q̇`` itself); a drift that is not finite there keeps the first solve."""
         rec, tick = self.records, self.tick
         s, P, p = rec.state[0], rec.params[0], rec.problem[0]
         first = s["drift"].copy()
@@ -324,8 +325,10 @@ class Controller:
             p["b1"] += P["half_dt"] * (first - s["drift"])
         else:
             s["drift"] = first
+        t0 = time.perf_counter()
         why = self.qp.solve_problem(rec.problem, rec.solution, self._time_budget)
-        return why, finish_tick(qv, dq_meas, tick) & ~PREDICTION_MISSED
+        solve_time = time.perf_counter() - t0
+        return why, finish_tick(qv, dq_meas, tick) & ~PREDICTION_MISSED, solve_time
 
     def _command(self, bits: int, t0: float, message: str, solve_time: float) -> Command:
         """The :class:`Command` of this tick's records, stamped (:func:`qpnso.control.config._stamped`)."""

@@ -1081,3 +1081,14 @@ def test_the_solution_record_says_how_each_outcome_ended() -> None:
         assert S["outcome"] == STOPPED
         np.testing.assert_array_equal(S["x"], 0.0)
         np.testing.assert_array_equal(S["x1"], 0.0)
+
+
+def test_a_problem_record_holds_at_least_one_row_of_each_kind() -> None:
+    """``new_problem(n, 0, 0)``: every row field has one slot (matrix and both sides alike), so that a kernel can
+    slice it to ``[:0]`` and a caller can write one row; the counts say how many are in use."""
+    from qpnso.qp.problem import new_problem
+
+    P = new_problem(N, 0, 0)[0]
+    for kind in ("hard", "soft"):
+        assert P[f"{kind}_C"].shape == (1, N) and P[f"{kind}_l"].shape == P[f"{kind}_u"].shape == (1,)
+    assert P["n_hard"] == P["n_soft"] == 0

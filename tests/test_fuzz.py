@@ -346,3 +346,19 @@ def test_the_pull_that_stopped_next_to_the_joint_bounds_leaves_the_tool_held(mon
 
     monkeypatch.setattr(Controller, "_second_pass", first_solve_kept)
     assert run_fuzz(episode).counts["drift"] == 1
+
+
+def test_only_a_tick_on_its_reference_and_not_limited_starts_a_recovery(tool_robot) -> None:
+    """A disturbance is measured for recovery only from a tick that was OK, within the tolerance of its reference
+    and not ``TOOL_LIMITED``; and episode 844 of seed 1 (a twist the joint velocity limits could not follow near
+    a straight elbow, bad inputs refused in the middle) no longer counts as a failed recovery."""
+    from qpnso.lab.fuzz.episode import on_reference
+
+    q = np.zeros(7)
+    assert on_reference(fake_command(tool_robot, q), 5e-5, 1e-4)
+    assert not on_reference(fake_command(tool_robot, q), 2e-4, 1e-4)
+    assert not on_reference(fake_command(tool_robot, q, status=Status.TOOL_LIMITED), 5e-5, 1e-4)
+    assert not on_reference(fake_command(tool_robot, q, status=Status.QP_FAILED), 5e-5, 1e-4)
+    assert not on_reference(None, 0.0, 1e-4)
+    report = run_fuzz(FuzzConfig(seed=1, first_episode=844, ticks=600, strategies=("gradient",), compile="sync"))
+    assert report.counts["recovery"] == 0

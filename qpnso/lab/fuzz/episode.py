@@ -76,7 +76,7 @@ class Episode:
         self.pending: Recovery | None = None
         self.rom_out: float | None = None
         self.previous: Status | None = None
-        self.recovered = False  # the last valid tick was OK with the tool on its reference
+        self.recovered = False  # the last valid tick was OK with the tool on its reference (on_reference)
         self.pull_from_ok = False
         self.failures_in_row = 0
         self.tick = 0
@@ -197,7 +197,7 @@ class Episode:
         self.failures_in_row = 0 if finite else self.failures_in_row + 1
         if cmd is not None and self.strategy in cfg.rom_strategies:
             self.rom_out = chk.rom(cmd, self.rom_out, where, inputs)
-        self.recovered = cmd is not None and cmd.ok and error[0] < cfg.recovery_tol_m
+        self.recovered = on_reference(cmd, error[0], cfg.recovery_tol_m)
         self.pending = update_recovery(self.pending, self.tick, cmd, error[0], chk, self.q, self.reference, inputs)
         if self.fuzzer.observe is not None:
             self.fuzzer.observe(where, inputs, cmd, error)
@@ -217,3 +217,12 @@ class Episode:
         else:
             return cmd
         return None
+
+
+def on_reference(cmd: Command | None, error_m: float, tol_m: float) -> bool:
+    """Whether a tick left the controller in a state to recover to: ``cmd.ok``, the tool within ``tol_m`` (m) of
+    its reference, and not ``TOOL_LIMITED``.  A limited tool is already falling behind a reference that it cannot
+    follow (a twist beyond the joint velocity limits near a singularity): a disturbance then has nothing to be
+    recovered from, and counting one measured the twist, not the recovery (seed 1, episode 844: bad inputs,
+    refused, at a tick whose tool was 98 µm off and limited, the error growing by 7 µm a tick before and after)."""
+    return cmd is not None and cmd.ok and not cmd.status & Status.TOOL_LIMITED and error_m < tol_m

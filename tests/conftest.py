@@ -90,3 +90,16 @@ def pytest_collection_modifyitems(config, items) -> None:
         for item in items:
             if "jit" in item.keywords:
                 item.add_marker(skip)
+
+
+def without_second_pass(monkeypatch) -> None:
+    """Make every Controller keep its first solve when the solved q̇ misses the prediction (no
+    ``Controller._second_pass``): what the held tool did before the second pass, for tests that show its effect."""
+    from qpnso.control.controller import Controller
+    from qpnso.control.flags import PREDICTION_MISSED
+    from qpnso.control.tick import finish_tick
+
+    def first_solve_kept(self, qv, dq_meas):
+        return "", finish_tick(qv, dq_meas, self.tick) & ~PREDICTION_MISSED, 0.0
+
+    monkeypatch.setattr(Controller, "_second_pass", first_solve_kept)

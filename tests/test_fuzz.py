@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import without_second_pass
 
 import qpnso
 from qpnso.control.config import STRATEGIES, Command, Status
@@ -333,18 +334,10 @@ def test_the_pull_that_stopped_next_to_the_joint_bounds_leaves_the_tool_held(mon
     bounds, so the self-motion they held back starts at once (1.42 rad/s off the predicted command); the held
     tool then moved 1.14 µrad.  It holds now (the tick is solved again along its own q̇), and it does not when
     the first solve is kept."""
-    from qpnso.control.controller import Controller
-    from qpnso.control.flags import PREDICTION_MISSED
-    from qpnso.control.tick import finish_tick
-
     episode = FuzzConfig(seed=1, first_episode=129, ticks=600, strategies=("elbow-up",), compile="sync")
     report = run_fuzz(episode)
     assert report.counts["drift"] == 0 and report.drift_checked > 500
-
-    def first_solve_kept(self, qv, dq_meas):
-        return "", finish_tick(qv, dq_meas, self.tick) & ~PREDICTION_MISSED, 0.0
-
-    monkeypatch.setattr(Controller, "_second_pass", first_solve_kept)
+    without_second_pass(monkeypatch)
     assert run_fuzz(episode).counts["drift"] == 1
 
 

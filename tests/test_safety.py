@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import without_second_pass
 
 import qpnso
 from qpnso import Controller, ControllerConfig, QPSettings
@@ -476,12 +477,6 @@ def test_a_baseline_starting_from_rest_does_not_drag_the_held_tool(robot, monkey
     q0 = np.array([-0.5526, -2.0699, 1.5455, 1.1735, 2.5668, 0.3025, -0.4218])  # the fuzz's start (seed 5, ep. 15)
     unfiltered = ControllerConfig(strategy="elbow-up", posture_filter_time=0.0)
     assert _held_tool_worst_error(robot, unfiltered, q0) < 1e-7
-    from qpnso.control.flags import PREDICTION_MISSED
-    from qpnso.control.tick import finish_tick
-
-    def first_solve_kept(self, qv, dq_meas):
-        return "", finish_tick(qv, dq_meas, self.tick) & ~PREDICTION_MISSED, 0.0
-
-    monkeypatch.setattr(Controller, "_second_pass", first_solve_kept)
+    without_second_pass(monkeypatch)
     assert _held_tool_worst_error(robot, ControllerConfig(strategy="elbow-up"), q0) < 1e-7
     assert _held_tool_worst_error(robot, unfiltered, q0) > 3e-7

@@ -480,3 +480,33 @@ def test_a_baseline_starting_from_rest_does_not_drag_the_held_tool(robot, monkey
     without_second_pass(monkeypatch)
     assert _held_tool_worst_error(robot, ControllerConfig(strategy="elbow-up"), q0) < 1e-7
     assert _held_tool_worst_error(robot, unfiltered, q0) > 3e-7
+
+
+def test_a_second_solve_that_fails_keeps_the_first(robot, monkeypatch) -> None:
+    """The second pass's solve failing (forced here, the solution record scribbled on) leaves the tick's first
+    answer, as a controller without the second pass gives it, with no QP failure: a failure's safe command would
+    stop the self-motion in one tick."""
+    from qpnso.qp.problem import STOPPED
+
+    q0 = np.array([-0.5526, -2.0699, 1.5455, 1.1735, 2.5668, 0.3025, -0.4218])  # elbow-up far from its target
+    config = ControllerConfig(strategy="elbow-up", posture_filter_time=0.0)
+    ctrl = Controller(robot, config)
+    ctrl.reset(q0)
+    real, calls = ctrl.qp.solve_problem, []
+
+    def failing_second(problem, solution, budget=None):
+        calls.append(problem[0]["b1"].copy())
+        if len(calls) == 2:
+            solution[0]["x"], solution[0]["outcome"] = 99.0, STOPPED
+            return "forced failure"
+        return real(problem, solution, budget)
+
+    monkeypatch.setattr(ctrl.qp, "solve_problem", failing_second)
+    cmd = ctrl.step(q0)
+    assert len(calls) == 2 and not np.array_equal(calls[0], calls[1])  # a second pass, on a corrected level 1
+    assert cmd.ok and not cmd.status & Status.QP_FAILED and "forced" not in cmd.message
+    np.testing.assert_array_equal(ctrl.records.problem[0]["b1"], calls[0])
+    without_second_pass(monkeypatch)
+    reference = Controller(robot, config)
+    reference.reset(q0)
+    np.testing.assert_array_equal(cmd.dq, reference.step(q0).dq)

@@ -316,21 +316,23 @@ class Controller:
         step the prediction could not see, e.g. level 1 leaving the joint bounds when a pull stops), then the
         tick's problem solved and finished again (same level 2).  Returns the solve's failure (or ""), the
         status bits and the solve's wall time (s).  The state is evaluated along ``q̇`` (with no change of
-        twist, the predicted velocity is ``q̇`` itself); a drift that is not finite there keeps the first solve."""
+        twist, the predicted velocity is ``q̇`` itself).  A drift that is not finite there, or a second solve that
+        fails, keeps the first solve (a failure's safe command would stop the self-motion at once: a step)."""
         rec, tick = self.records, self.tick
         s, P, p = rec.state[0], rec.params[0], rec.problem[0]
-        first = s["drift"].copy()
-        x = rec.solution[0]["x"].copy()
-        self.evaluate.record(qv, x, self._no_twist, self._no_twist)
+        first_drift, first_b1, first_solution = s["drift"].copy(), p["b1"].copy(), rec.solution.copy()
+        self.evaluate.record(qv, first_solution[0]["x"], self._no_twist, self._no_twist)
         sanitize_state(s)  # (q is the tick's: the rest of the state is as begin_tick left it)
+        solve_time = 0.0
         if np.all(np.isfinite(s["drift"])):
-            p["b1"] += P["half_dt"] * (first - s["drift"])
-        else:
-            s["drift"] = first
-        t0 = time.perf_counter()
-        why = self.qp.solve_problem(rec.problem, rec.solution, self._time_budget)
-        solve_time = time.perf_counter() - t0
-        return why, finish_tick(qv, dq_meas, tick) & ~PREDICTION_MISSED, solve_time
+            p["b1"] += P["half_dt"] * (first_drift - s["drift"])
+            t0 = time.perf_counter()
+            why = self.qp.solve_problem(rec.problem, rec.solution, self._time_budget)
+            solve_time = time.perf_counter() - t0
+            if not why:
+                return why, finish_tick(qv, dq_meas, tick) & ~PREDICTION_MISSED, solve_time
+        s["drift"], p["b1"], rec.solution[:] = first_drift, first_b1, first_solution
+        return "", finish_tick(qv, dq_meas, tick) & ~PREDICTION_MISSED, solve_time
 
     def _command(self, bits: int, t0: float, message: str, solve_time: float) -> Command:
         """The :class:`Command` of this tick's records, stamped (:func:`qpnso.control.config._stamped`)."""

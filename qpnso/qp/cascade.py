@@ -222,7 +222,7 @@ def task_svd(level, basis):
     r = Z.shape[1]
     if A.shape[0] == 0 or r == 0:
         return np.zeros((0, r)), np.zeros(0), np.zeros((r, r)), np.zeros(0)
-    At = A.copy() if basis.full else matmul(A, Z)
+    At = A if basis.full else matmul(A, Z)  # (read only: no copy)
     r0 = matvec(A, basis.x_prev) - level.b if basis.moved else -level.b
     if not np.all(np.isfinite(At)):
         return At, np.zeros(0), np.eye(r), r0

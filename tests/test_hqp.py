@@ -13,7 +13,10 @@ from scipy.optimize import linprog
 
 from qpnso.errors import InputError, SolverError
 from qpnso.qp import HierarchicalQP, Level, LevelStatus, QPSettings
-from qpnso.qp.cascade import Cascade, advance_cascade, build_level_qp
+from qpnso.qp.cascade import level_parts
+from qpnso.qp.cascade_state import LEVEL_ADVANCED, LEVEL_VIOLATED, CascadeState, check_level
+from qpnso.qp.levels import _validate_level
+from qpnso.qp.settings import tolerance_record
 
 N = 7
 BACKENDS = ["proxsuite", "daqp", "quadprog"]
@@ -21,6 +24,18 @@ DELTA = 1e-10  # reference's Tikhonov term on x where a level is not strictly co
 
 
 # ---------------------------------------------------------------- reference
+
+
+def cascade_on(levels, lb, ub, settings=QPSettings()):
+    """A cascade record started under ``lb ≤ x ≤ ub`` for ``levels``, and their parts as its kernels take them."""
+    n = lb.shape[0]
+    data = [_validate_level(level, n, f"levels[{k}]") for k, level in enumerate(levels)]
+    rows = sum(0 if d.C is None else d.C.shape[0] for d in data)
+    state = CascadeState(n, rows, max(d.n_slack for d in data), tolerance_record(settings))
+    state.start(lb, ub)
+    return state, [level_parts(d, n) for d in data]
+
+
 def _ref_level(P, q, lb, ub, eq, ineq, solver="quadprog"):
     """min ½xᵀPx + qᵀx (x may be extended by slacks) s.t. equalities, two-sided rows, bounds."""
     G, h = [], []
@@ -357,23 +372,24 @@ def test_build_level_qp_is_the_level_objective():
     levels, lb, ub = random_problem(0)
     hqp = HierarchicalQP(N, settings=QPSettings(regularization=0.0))
     res = hqp.solve(levels, lb, ub)
-    c0 = Cascade.start(lb, ub)
-    qp1 = build_level_qp(levels[0], c0)
-    assert qp1.C.shape == (0, N) and qp1.box_l is not None and qp1.bound_rows == 0  # bounds as a box on d
-    c1 = advance_cascade(levels[0], c0, qp1, res.levels[0].x)
-    assert c1.Z.shape == (N, 1)  # a full-rank 6×7 task leaves one direction
-    np.testing.assert_allclose(c1.Z.T @ c1.Z, np.eye(1), atol=1e-14)
-    np.testing.assert_allclose(levels[0].A @ c1.Z, 0, atol=1e-12)
-    assert np.linalg.matrix_rank(c1.N) == 1 and np.allclose(c1.N @ c1.N, c1.N)
-    qp2 = build_level_qp(levels[1], c1)
-    assert qp2.H.shape == (1 + 2, 1 + 2) and qp2.C.shape == (2 + N, 1 + 2) and qp2.box_l is None
-    np.testing.assert_allclose(qp2.C[-N:, :1], c1.Z)  # the bounds as rows Z z
-    np.testing.assert_allclose(qp2.l[-N:], lb - c1.x)
+    state, parts = cascade_on(levels, lb, ub)
+    qp1, _ = state.build(parts[0])
+    assert qp1.C.shape == (0, N) and qp1.box_l.shape == (N,)  # the bounds as a box on z
+    state.advance(parts[0], res.levels[0].x)
+    Z, x1 = state.Z, state.x
+    assert Z.shape == (N, 1)  # a full-rank 6×7 task leaves one direction
+    np.testing.assert_allclose(Z.T @ Z, np.eye(1), atol=1e-14)
+    np.testing.assert_allclose(levels[0].A @ Z, 0, atol=1e-12)
+    np.testing.assert_array_equal(x1, res.levels[0].x)
+    qp2, _ = state.build(parts[1])
+    assert qp2.H.shape == (1 + 2, 1 + 2) and qp2.C.shape == (2 + N, 1 + 2) and qp2.box_l.shape == (0,)
+    np.testing.assert_allclose(qp2.C[-N:, :1], Z)  # the bounds as rows Z z
+    np.testing.assert_allclose(qp2.l[-N:], lb - x1)
     rng = np.random.default_rng(0)
     vals = []
     for _ in range(3):
         v = np.r_[rng.standard_normal(1), 0, 0]  # zero slack
-        vals.append(0.5 * v @ qp2.H @ v + qp2.g @ v - level_cost(levels[1], qp2.x_of(v)))
+        vals.append(0.5 * v @ qp2.H @ v + qp2.g @ v - level_cost(levels[1], x1 + Z @ v[:1]))
     np.testing.assert_allclose(vals, vals[0], atol=1e-9)
 
 
@@ -411,9 +427,10 @@ def test_controller_problem_fast_form_matches_reference(fast):
         n_line += int(LINE_MESSAGE in res.levels[0].message)
         if levels[1].slack_weight is not None:
             np.testing.assert_allclose(res.levels[1].slack, _soft_violation(levels[1], res.x), atol=1e-9)
-        c0 = Cascade.start(lb, ub)
-        c1 = advance_cascade(levels[0], c0, build_level_qp(levels[0], c0, hqp.settings), res.levels[0].x, hqp.settings)
-        assert c1.Z.shape == (N, 1)  # level 2 has one free variable (plus its slack)
+        state, parts = cascade_on(levels, lb, ub, hqp.settings)
+        state.build(parts[0])
+        state.advance(parts[0], res.levels[0].x)
+        assert state.Z.shape == (N, 1)  # level 2 has one free variable (plus its slack)
     assert n_active >= 12  # the bounds bite on most ticks
     assert hqp.stats.failures == 0
     # the tool asks more than the bounds allow: level 1, and level 2 as (z, σ) with 8 rows or as z
@@ -566,10 +583,10 @@ def test_strictly_convex_is_a_positive_definite_hessian_in_z(seed):
     r = int(rng.integers(1, 6))
     B = rng.normal(size=(r, int(rng.integers(1, r + 2))))  # rank ≤ r: singular when it has fewer columns
     H = B @ B.T
-    c0 = Cascade.start(-np.ones(r), np.ones(r))
-    qp = build_level_qp(Level(H=H), c0)
+    state, parts = cascade_on([Level(H=H)], -np.ones(r), np.ones(r))
+    qp, _ = state.build(parts[0])
     eig = np.linalg.eigvalsh(H)
-    assert strictly_convex(qp, 1e-10) == bool(eig[0] > 1e-10 * max(1.0, eig[-1]))
+    assert strictly_convex(qp.H, r, 1e-10) == bool(eig[0] > 1e-10 * max(1.0, eig[-1]))
 
 
 @pytest.mark.jit
@@ -583,9 +600,10 @@ def test_warm_up_loads_every_cascade_kernel_and_forgets(tmp_path):
 
     code = """
 import numpy as np
-from qpnso.qp import Level, backends, cascade, line, results, solver
+from qpnso.qp import Level, backends, cascade_state, line, results, solver
 qp = solver.HierarchicalQP(7)
-kernels = (cascade.level_qp_arrays, cascade.level_answer, line.line_qp_arrays, line.checked_line_answer, line.task_line,
+kernels = (cascade_state.build_level, cascade_state.finish_level, cascade_state.build_least_norm,
+           cascade_state.check_least_norm, line.line_qp_arrays, line.checked_line_answer, line.task_line,
            line.least_norm_point, backends.qp_data_finite)
 assert all(len(k.signatures) == 0 for k in kernels)
 qp.warm_up()
@@ -608,12 +626,9 @@ print([k.__name__ for k, n in zip(kernels, loaded) if n == 0 or len(k.signatures
 @pytest.mark.parametrize("soft", [True, False])
 @pytest.mark.parametrize("seed", range(6))
 def test_a_level_answer_is_judged_in_joint_space(seed, soft):
-    """The check of a level's answer (``level_answer`` kernel) against joint space, by NumPy: ``x = x_prev + Z z``;
+    """The check of a level's answer (``check_level`` kernel) against joint space, by NumPy: ``x = x_prev + Z z``;
     accepted iff the joint bounds and the hard rows hold within ``feasibility_tol``; a soft row's slack is its
-    violation at x.  Answers perturbed across a bound or a row are refused as ``INACCURATE``."""
-    from qpnso.qp.backends import _Raw
-    from qpnso.qp.levels import _trusted_level
-
+    violation at x.  Answers perturbed across a bound or a row are refused, with their worst violation."""
     levels, lb, ub = random_problem(seed)
     levels[1].C = np.vstack([levels[1].C, np.random.default_rng(seed).standard_normal((1, N))])
     levels[1].l, levels[1].u = np.r_[levels[1].l, -0.3], np.r_[levels[1].u, 0.3]
@@ -624,31 +639,32 @@ def test_a_level_answer_is_judged_in_joint_space(seed, soft):
         levels[1].l, levels[1].u, levels[1].slack_weight = rows - 0.05, rows + 0.05, None
         res = hqp.solve(levels, lb, ub)
     assert res.ok
-    data = [_trusted_level(level) for level in levels]
-    c1 = advance_cascade(
-        levels[0], Cascade.start(lb, ub), build_level_qp(levels[0], Cascade.start(lb, ub)), res.levels[0].x
-    )
-    qp2 = build_level_qp(data[1], c1)
+    state, parts = cascade_on(levels, lb, ub, hqp.settings)
+    state.build(parts[0])
+    state.advance(parts[0], res.levels[0].x)
+    x1, Z = state.x, state.Z
+    qp2, _ = state.build(parts[1])
+    n_slack = qp2.g.shape[0] - Z.shape[1]
     rng = np.random.default_rng(seed)
     tol = hqp.settings.feasibility_tol
     outcomes = set()
-    z_star = c1.Z.T @ (res.x - c1.x)  # the cascade's own answer: feasible
+    z_star = Z.T @ (res.x - x1)  # the cascade's own answer: feasible
     for k in range(40):
         z = z_star + (0.0 if k == 0 else rng.uniform(-5.0, 5.0, 1) * 10.0 ** -rng.integers(0, 4))
-        v = np.r_[z, np.zeros(qp2.n_slack)]
-        x = c1.x + c1.Z @ z
+        v = np.r_[z, np.zeros(n_slack)]
+        x = x1 + Z @ z
         rows = levels[1].C @ x
         violation = np.maximum(levels[1].l - rows, rows - levels[1].u)
         feasible = bool(np.all(x >= lb - tol) and np.all(x <= ub + tol) and (soft or np.all(violation <= tol)))
-        got = hqp._check(data[1], qp2, _Raw(v, LevelStatus.SOLVED, 1, "test"))
-        assert got.ok == feasible, (x, got.message)
+        code = check_level(state.record, state.buffer, parts[1], v, state.tol)
+        assert (code == LEVEL_ADVANCED) == feasible, (x, code)
         outcomes.add(feasible)
-        if got.ok:
-            np.testing.assert_allclose(got.x, x, atol=1e-12)
-            if soft:
-                np.testing.assert_allclose(got.slack, np.maximum(violation, 0.0), atol=1e-12)  # its violation
-        else:
-            assert got.status is LevelStatus.INACCURATE and "violated by" in got.message
+        np.testing.assert_allclose(state.xk, x, atol=1e-12)
+        if soft:
+            np.testing.assert_allclose(state.slack[:n_slack], np.maximum(violation, 0.0), atol=1e-12)  # its violation
+        if not feasible:
+            worst = max(np.max(lb - x), np.max(x - ub), -np.inf if soft else np.max(violation))
+            assert code == LEVEL_VIOLATED and state.worst[0] == pytest.approx(worst, abs=1e-12)
     assert outcomes == {True, False}  # both kinds of answer were judged
 
 
@@ -830,17 +846,17 @@ def test_the_slack_of_a_soft_level_below_hard_rows_is_its_own_rows_violation() -
 
 @pytest.mark.parametrize("r", [1, 2, 3])
 def test_fix_signs_makes_each_columns_largest_entry_positive(r: int) -> None:
-    """The null-space basis' sign convention (a stable warm start from tick to tick): after ``_fix_signs`` each
+    """The null-space basis' sign convention (a stable warm start from tick to tick): after ``fix_signs`` each
     column's largest-magnitude entry is positive, the columns are the same up to that sign, and a column that
     already has it is left as it is."""
-    from qpnso.qp.cascade import _fix_signs
+    from qpnso.qp.cascade import fix_signs
 
     rng = np.random.default_rng(r)
     Z = np.linalg.qr(rng.standard_normal((N, r)))[0]
     Z[:, 0] *= np.sign(Z[np.abs(Z[:, 0]).argmax(), 0])  # column 0 already positive: kept
     if r > 1:
         Z[:, 1] *= -np.sign(Z[np.abs(Z[:, 1]).argmax(), 1])  # column 1 negative: flipped
-    fixed = _fix_signs(Z)
+    fixed = fix_signs(Z.copy())
     for j in range(r):
         assert fixed[np.abs(fixed[:, j]).argmax(), j] > 0.0
     np.testing.assert_array_equal(np.abs(fixed), np.abs(Z))
@@ -999,8 +1015,7 @@ def test_objective_gradient_is_the_level_costs_gradient(parts: str) -> None:
     """The x-gradient a level passes to the cascade (which direction it gives up to the levels below) against
     central finite differences of the level's cost ‖W^½(Ax − b)‖² + ½xᵀHx + gᵀx, for every mix of its terms
     (weighted task, PSD quadratic, linear term)."""
-    from qpnso.qp.cascade import _objective_gradient
-    from qpnso.qp.levels import _validate_level
+    from qpnso.qp.cascade import objective_gradient
 
     rng = np.random.default_rng(len(parts))
     L = rng.standard_normal((N, 2))
@@ -1026,7 +1041,8 @@ def test_objective_gradient_is_the_level_costs_gradient(parts: str) -> None:
 
     h = 1e-6
     fd = np.array([(cost(x + h * e) - cost(x - h * e)) / (2 * h) for e in np.eye(N)])
-    np.testing.assert_allclose(_objective_gradient(_validate_level(level, N, "level"), x), fd, rtol=1e-7, atol=1e-7)
+    parts = level_parts(_validate_level(level, N, "level"), N)
+    np.testing.assert_allclose(objective_gradient(parts, x), fd, rtol=1e-7, atol=1e-7)
 
 
 def test_warm_up_leaves_a_solver_that_answers_as_a_new_one() -> None:
@@ -1092,3 +1108,59 @@ def test_a_problem_record_holds_at_least_one_row_of_each_kind() -> None:
     for kind in ("hard", "soft"):
         assert P[f"{kind}_C"].shape == (1, N) and P[f"{kind}_l"].shape == P[f"{kind}_u"].shape == (1,)
     assert P["n_hard"] == P["n_soft"] == 0
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_complement_is_numpys_complete_qr(seed: int) -> None:
+    """The directions a level's projected gradient leaves (``complement``: one Householder reflector) against
+    NumPy's complete QR of the same unit vector (LAPACK): the same columns to round-off, orthonormal and
+    orthogonal to it; a vector on the first axis (no reflection) and one of length 1 (no complement)."""
+    from qpnso.qp.cascade import complement
+
+    rng = np.random.default_rng(seed)
+    r = int(rng.integers(1, 7))
+    p = rng.standard_normal(r)
+    if seed == 0:
+        p = np.zeros(r)
+        p[0] = -2.0
+    p /= np.linalg.norm(p)
+    Q = complement(p)
+    assert Q.shape == (r, r - 1)
+    np.testing.assert_allclose(Q, np.linalg.qr(p[:, None], mode="complete")[0][:, 1:], atol=1e-14)
+    np.testing.assert_allclose(Q.T @ Q, np.eye(r - 1), atol=1e-14)
+    np.testing.assert_allclose(p @ Q, 0.0, atol=1e-14)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_a_problem_record_and_its_levels_give_the_same_cascade(seed: int) -> None:
+    """The general cascade reading a tick's problem record in its kernels (``problem_level``) against the same
+    problem given as levels (``qpnso.qp.problem.problem_levels``, Python): equal answers to round-off and the
+    same status,
+    for records with and without hard rows, soft rows, a level-2 task, quadratic and linear term."""
+    from qpnso.qp.problem import new_problem, new_solution, problem_levels
+
+    rng = np.random.default_rng(seed)
+    p = new_problem(N, hard_rows=2, soft_rows=2)
+    P = p[0]
+    P["A1"] = rng.standard_normal((6, N)) * (np.arange(6) < 6 - seed % 3)[:, None]  # rank 6, 5 or 4
+    P["b1"] = 0.3 * rng.standard_normal(6)
+    P["lb"], P["ub"] = -rng.uniform(0.2, 1.0, N), rng.uniform(0.2, 1.0, N)
+    P["n_hard"] = seed % 3
+    P["hard_C"], P["hard_l"], P["hard_u"] = rng.standard_normal((2, N)), -np.ones(2), np.ones(2)
+    P["has_level2"] = seed % 4 != 3
+    P["m2"] = seed % 2
+    P["A2"][:1], P["b2"][:1] = rng.standard_normal((1, N)), 0.2
+    L = rng.standard_normal((N, N))
+    P["use_H2"], P["H2"] = seed % 5 != 0, L @ L.T if seed % 2 else np.eye(N)
+    P["use_g2"], P["g2"] = seed % 3 != 1, rng.standard_normal(N)
+    P["n_soft"], P["slack_weight"] = seed % 3, 1e3
+    P["soft_C"], P["soft_l"], P["soft_u"] = rng.standard_normal((2, N)), -0.05 * np.ones(2), 0.05 * np.ones(2)
+    by_record, by_levels = HierarchicalQP(N, backend="daqp"), HierarchicalQP(N, backend="daqp")
+    solution = new_solution(N)
+    why = by_record._solve_problem_levels(p, solution, None)
+    levels = problem_levels(p)
+    res = by_levels.solve(levels, P["lb"], P["ub"], check=False)
+    assert why == ("" if res.ok else res.status)
+    np.testing.assert_allclose(solution[0]["x"], res.x if res.x is not None else 0.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(solution[0]["x1"], res.levels[0].x if res.levels[0].x is not None else 0.0, atol=1e-12)
+    assert solution[0]["tool_residual"] == pytest.approx(res.levels[0].residual if res.levels[0].ok else -1.0)

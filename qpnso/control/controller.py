@@ -169,7 +169,8 @@ class Controller:
         then cached on disk) or load here, never in a control tick — on the line fast path, the general
         cascade (:meth:`HierarchicalQP.warm_up`) and with the elbow dropped."""
         announce_numba_if_cold()  # one line on stderr when the kernels compile now (empty cache)
-        self.qp.warm_up(line=False)  # the general cascade's kernels (the dry ticks below may not reach it)
+        self.qp.warm_up(line=False, problem=self.records.problem)  # the general cascade's kernels (the dry ticks
+        # below may not reach it)
         q = self.robot.sample_configuration()
         self.reset(q)
         self.step(q)

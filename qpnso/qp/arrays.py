@@ -84,3 +84,22 @@ def qp_data_finite(qp):
             if x != x:
                 return False
     return True
+
+
+def rows_with_box(qp: QPArrays) -> QPArrays:
+    """``qp`` with its box's finite entries appended to its rows as unit rows and no box (for a back end
+    without a native box); no box: ``qp`` itself."""
+    if not qp.box_l.shape[0]:
+        return qp
+    keep = np.isfinite(qp.box_l) | np.isfinite(qp.box_u)
+    unit = np.eye(qp.g.shape[0])[keep]
+    empty = np.zeros(0)
+    return QPArrays(
+        qp.H,
+        qp.g,
+        np.vstack([qp.C, unit]),
+        np.concatenate([qp.l, qp.box_l[keep]]),
+        np.concatenate([qp.u, qp.box_u[keep]]),
+        empty,
+        empty,
+    )

@@ -22,8 +22,7 @@ import daqp
 import numpy as np
 
 from qpnso.errors import SolverError
-from qpnso.qp.arrays import QPArrays, qp_data_finite
-from qpnso.qp.cascade import _NO_VECTOR, LevelQP
+from qpnso.qp.arrays import QPArrays, qp_data_finite, rows_with_box
 from qpnso.qp.results import HQPStats, LevelStatus
 from qpnso.qp.settings import NATIVE_BACKEND, QPSettings
 
@@ -130,12 +129,6 @@ class _ProxSuiteBackend:
         self._stats.qp_created += 1
         return obj
 
-    def solve(self, k: int, qp: LevelQP) -> _Raw:
-        if qp.box_l is not None and self._settings.box_constraints:
-            return self.solve_arrays(k, qp.arrays)
-        C, lo, hi = qp.rows_with_box()
-        return self.solve_arrays(k, QPArrays(qp.H, qp.g, C, lo, hi, _NO_VECTOR, _NO_VECTOR))
-
     def solve_arrays(self, k: int, qp: QPArrays) -> _Raw:
         """``min ½vᵀHv + gᵀv`` s.t. ``l ≤ C v ≤ u`` (and ``box_l ≤ v ≤ box_u`` if ``qp`` has a box) on the
         persistent object of level ``k`` and this shape, warm-started.
@@ -148,7 +141,9 @@ class _ProxSuiteBackend:
         as hard on the next ticks (a pull against the bounds), and a failed attempt costs as much as the
         DAQP solve itself (measured); after the hold ProxQP starts cold.  Without the fallback a failed
         warm solve is retried cold at once.  The data are finite (:func:`finite_data_raw` refuses others
-        first)."""
+        first).  A box goes to ProxQP as its native box if ``QPSettings.box_constraints``, else as rows."""
+        if qp.box_l.shape[0] and not self._settings.box_constraints:
+            qp = rows_with_box(qp)
         H, g, C, lo, hi, box_l, box_u = qp
         box = box_l.shape[0] > 0
         key = (k, H.shape[0], C.shape[0], box)
@@ -222,8 +217,8 @@ class _QpsolversBackend:
         self._solver = solver
         self._options = dict(settings.solver_options)
 
-    def solve(self, k: int, qp: LevelQP) -> _Raw:
-        C, lo, hi = qp.rows_with_box()
+    def solve_arrays(self, k: int, qp: QPArrays) -> _Raw:
+        _, _, C, lo, hi, _, _ = rows_with_box(qp)
         up, down = np.isfinite(hi), np.isfinite(lo)
         G = np.vstack([C[up], -C[down]])
         h = np.concatenate([hi[up], -lo[down]])

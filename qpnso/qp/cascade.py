@@ -5,7 +5,7 @@ moves the answer of the levels above only inside the directions that no higher
 level owns, through an orthonormal basis ``Z_k`` (n×r) of them:
 ``x = x_{k−1} + Z_k z``.  The answer is always formed through ``Z_k``, so a
 higher task's residual is preserved by construction, whatever the solver's
-tolerance.  Each level's QP (:class:`LevelQP`, variable ``z`` ∈ Rʳ plus one
+tolerance.  Each level's QP (:func:`level_qp_arrays`, variable ``z`` ∈ Rʳ plus one
 scaled slack per soft row) has NO equality rows: on the first level ``Z = I``
 and the bounds are ProxSuite's native box; below, the bounds are the n rows
 ``Z z``.  After a full-rank 6×7 tool task r = 1 (the self-motion direction),
@@ -62,17 +62,15 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
-from qpnso.linalg import matmul, matvec
-from qpnso.qp.arrays import Basis, Inherited, LevelParts, QPArrays, qp_data_finite
-from qpnso.qp.levels import Level, _LevelData, _validate_level
-from qpnso.qp.settings import QPSettings, tolerance_record
+from qpnso.linalg import dot, matmul, matvec
+from qpnso.qp.arrays import LevelParts, QPArrays, qp_data_finite
+from qpnso.qp.levels import _LevelData
 
-__all__ = ["Cascade", "LevelQP", "advance_cascade", "build_level_qp"]
+__all__ = ["advance_basis", "level_answer", "level_qp_arrays"]
 
 
 @functools.lru_cache(maxsize=16)
@@ -94,116 +92,6 @@ def _no_rows(n: int) -> np.ndarray:
     return np.zeros((0, n))
 
 
-@dataclass(slots=True)
-class Cascade:
-    """What the higher levels leave to the next one.
-
-    ``x`` (n,) their solution (rad/s); ``Z`` (n, r) an orthonormal basis of the
-    directions they leave free (``full``: ``Z`` is the identity, nothing taken
-    yet); ``lb``/``ub`` the bounds and ``C``/``l``/``u`` the inherited rows,
-    widened to contain ``x`` (see module docstring).
-    """
-
-    x: np.ndarray
-    Z: np.ndarray
-    lb: np.ndarray
-    ub: np.ndarray
-    C: np.ndarray
-    l: np.ndarray
-    u: np.ndarray
-    depth: int = 0  # number of levels already solved
-    full: bool = True  # Z is the n×n identity
-
-    @property
-    def N(self) -> np.ndarray:
-        """The n×n orthogonal projector ``Z Zᵀ`` onto the free directions."""
-        return self.Z @ self.Z.T
-
-    @classmethod
-    def start(cls, lb: np.ndarray, ub: np.ndarray) -> "Cascade":
-        n = lb.shape[0]
-        return cls(np.zeros(n), _eye(n), lb, ub, np.zeros((0, n)), np.zeros(0), np.zeros(0))
-
-
-@dataclass(slots=True)
-class LevelQP:
-    """The QP of one level in ``v = [z; σ]`` (r + n_slack), ``x = x_prev + Z z`` (rad/s):
-
-    ``min ½ vᵀ H v + gᵀ v``  s.t.  ``l ≤ C v ≤ u`` and, if ``box_l`` is not None,
-    ``box_l ≤ v ≤ box_u``.  Rows of ``C``, in this order: the inherited rows, the
-    level's own rows (its soft rows get ``+ σ/√(2ρ)``; the scaled slack
-    ``σ = √(2ρ)·s`` has unit curvature), then — when ``Z`` is not the identity —
-    the bounds as the n rows ``Z z`` (``bound_rows`` of them).  When ``Z`` is the
-    identity the bounds are a box on ``z`` (∓inf on σ) instead.  No equality
-    constraints: the null-space form is exact by construction.
-    ``owned_z`` (r, k) / ``free_z`` (r, r − k): orthonormal bases, in z, of the
-    task directions the level takes and of those it leaves (``free_z`` None: the
-    level has no task, all r are free).
-    """
-
-    H: np.ndarray
-    g: np.ndarray
-    C: np.ndarray
-    l: np.ndarray
-    u: np.ndarray
-    box_l: np.ndarray | None
-    box_u: np.ndarray | None
-    x_prev: np.ndarray
-    Z: np.ndarray
-    owned_z: np.ndarray
-    free_z: np.ndarray | None
-    n_slack: int
-    slack_start: int  # first soft row of C
-    bound_rows: int  # n if the bounds are the last rows of C, else 0
-    finite: bool = True  # the data can be solved (qp_data_finite): nothing that is not finite but ±inf bounds
-
-    @property
-    def r(self) -> int:
-        """Number of free directions (variables before the slacks)."""
-        return self.Z.shape[1]
-
-    @property
-    def owned(self) -> np.ndarray:
-        """The owned task directions in joint coordinates (n, k)."""
-        return self.Z @ self.owned_z
-
-    def d_of(self, v: np.ndarray) -> np.ndarray:
-        """``x − x_prev = Z z`` (rad/s) of a QP solution ``v``."""
-        return self.Z @ v[: self.r]
-
-    def x_of(self, v: np.ndarray) -> np.ndarray:
-        """Joint velocity (rad/s) of a QP solution ``v``."""
-        return self.x_prev + self.d_of(v)
-
-    @property
-    def arrays(self) -> QPArrays:
-        """The QP as the back ends and kernels take it (no box: empty box arrays)."""
-        box = self.box_l is not None and self.box_u is not None
-        return QPArrays(
-            self.H,
-            self.g,
-            self.C,
-            self.l,
-            self.u,
-            self.box_l if box else _NO_VECTOR,  # type: ignore[arg-type]
-            self.box_u if box else _NO_VECTOR,  # type: ignore[arg-type]
-        )
-
-    def rows_with_box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """All constraints as rows ``l ≤ C v ≤ u``: the finite box entries appended as
-        unit rows (for back ends without a native box); no box: ``C, l, u`` as they are."""
-        if self.box_l is None:
-            return self.C, self.l, self.u
-        assert self.box_u is not None  # a box has both sides
-        keep = np.isfinite(self.box_l) | np.isfinite(self.box_u)
-        unit = _eye(self.H.shape[0])[keep]
-        return (
-            np.vstack([self.C, unit]),
-            np.concatenate([self.l, self.box_l[keep]]),
-            np.concatenate([self.u, self.box_u[keep]]),
-        )
-
-
 def _c(a: np.ndarray) -> np.ndarray:
     """``a`` as a writable C-contiguous float array: the one array type the kernels are compiled for
     (another layout or a read-only array is another Numba signature, compiled in the tick that meets it)."""
@@ -217,7 +105,7 @@ def task_svd(level, basis):
     ``r0 = W^½(A x_prev − b)``; ``level`` a :class:`~qpnso.qp.arrays.LevelParts` (weights folded in),
     ``basis`` a :class:`~qpnso.qp.arrays.Basis`.  Empty ``At``, ``sigma`` and ``r0`` without a task or a free
     direction.  A task that is not finite has no singular values (the QP's linear term is then not finite,
-    and the level reports it: :attr:`LevelQP.finite`)."""
+    and the level reports it: ``finite``, :func:`level_qp_arrays`)."""
     A, Z = level.A, basis.Z
     r = Z.shape[1]
     if A.shape[0] == 0 or r == 0:
@@ -232,10 +120,10 @@ def task_svd(level, basis):
 
 @njit(cache=True)
 def level_qp_arrays(level, basis, inherited, tol):
-    """The arrays of :func:`build_level_qp`: ``level`` the level's :class:`~qpnso.qp.arrays.LevelParts`,
-    ``basis`` and ``inherited`` what the levels above leave (:class:`~qpnso.qp.arrays.Basis`,
-    :class:`~qpnso.qp.arrays.Inherited`), ``tol`` the tolerances (:func:`qpnso.qp.settings.tolerance_record`);
-    the task's SVD is :func:`task_svd`'s.
+    """The QP of a level in the free coordinates ``z`` (``x = x_prev + Z z``): ``level`` the level's
+    :class:`~qpnso.qp.arrays.LevelParts`, ``basis`` and ``inherited`` what the levels above leave
+    (:class:`~qpnso.qp.arrays.Basis`, :class:`~qpnso.qp.arrays.Inherited`), ``tol`` the tolerances
+    (:func:`qpnso.qp.settings.tolerance_record`); the task's SVD is :func:`task_svd`'s.
 
     Returns ``(arrays, has_box, owned_z, free_z, has_task, finite)``: ``arrays`` the
     :class:`~qpnso.qp.arrays.QPArrays` fields as a plain tuple (a named tuple returned to Python is built
@@ -314,141 +202,122 @@ def level_qp_arrays(level, basis, inherited, tol):
     return (Hv, gv, Cv, lo, hi, box_l, box_u), has_box, owned_z, free_z, has_task, finite
 
 
-def build_level_qp(
-    level: Level | _LevelData, cascade: Cascade, settings: QPSettings = QPSettings(), tol: np.ndarray | None = None
-) -> LevelQP:
-    """The QP of ``level`` in the free coordinates ``z`` (``x = x_prev + Z z``); pure.
-
-    Hessian: ``Zᵀ(2AᵀWA + H)Z`` (task part damped, module docstring) ``+ μ`` on
-    the free directions the task leaves; slack block ``I``.  Rows: inherited and
-    own rows in z, then the bounds ``Z z`` unless ``Z`` is the identity (box).
-    The arithmetic, the task's SVD included, is one kernel, :func:`level_qp_arrays`.  ``tol``:
-    ``settings``' :func:`~qpnso.qp.settings.tolerance_record`, if the caller holds it already.
-    """
-    n = cascade.x.shape[0]
-    data = level if isinstance(level, _LevelData) else _validate_level(level, n, "level")
-    ns = data.n_slack
-    qp, has_box, owned_z, free_z, has_task, finite = level_qp_arrays(
-        level_parts(data, n),
-        Basis(_c(cascade.x), _c(cascade.Z), cascade.full, cascade.depth > 0),
-        Inherited(_c(cascade.lb), _c(cascade.ub), _c(cascade.C), _c(cascade.l), _c(cascade.u)),
-        tolerance_record(settings) if tol is None else tol,
-    )
-    H, g, C, lo, hi, box_l, box_u = qp
-    return LevelQP(
-        H,
-        g,
-        C,
-        lo,
-        hi,
-        box_l if has_box else None,
-        box_u if has_box else None,
-        cascade.x,
-        cascade.Z,
-        owned_z,
-        free_z if has_task else None,
-        ns,
-        cascade.C.shape[0],
-        0 if cascade.full else n,
-        finite,
-    )
-
-
-def _objective_gradient(data: _LevelData, x: np.ndarray) -> np.ndarray | None:
-    """∇ₓ of the level's x-cost ``‖W^½(Ax − b)‖² + ½xᵀHx + gᵀx`` at ``x`` (no slack part)."""
-    grad = None
-    if data.Aw is not None:
-        grad = 2.0 * (data.Aw.T @ (data.Aw @ x - data.bw))
-    if data.H is not None:
-        grad = data.H @ x if grad is None else grad + data.H @ x
-    if data.g is not None:
-        grad = data.g if grad is None else grad + data.g
+@njit(cache=True)
+def objective_gradient(level, x):
+    """∇ₓ of a level's x-cost ``‖A x − b‖² + ½xᵀHx + gᵀx`` at ``x`` (weights folded into ``A``, ``b``; no
+    slack part); ``level`` a :class:`~qpnso.qp.arrays.LevelParts`."""
+    n = x.shape[0]
+    grad = np.zeros(n)
+    if level.A.shape[0]:
+        grad += 2.0 * matvec(level.A.T, matvec(level.A, x) - level.b)
+    if level.H.shape[0]:
+        grad += matvec(level.H, x)
+    if level.g.shape[0]:
+        grad += level.g
     return grad
 
 
-def strictly_convex(qp: LevelQP, rank_tol: float) -> bool:
-    """Whether the level's QP has a single optimum: its Hessian in z positive definite, every
-    eigenvalue above ``rank_tol·max(1, λ_max)`` (the test :func:`advance_cascade` applies to what a level
-    owns), so that the cascade below it would have no free direction left."""
-    r = qp.r
+@njit(cache=True)
+def strictly_convex(H, r, rank_tol):
+    """Whether a level's QP (Hessian ``H`` in ``v = [z; σ]``, ``r`` free directions) has a single optimum:
+    its Hessian in z positive definite, every eigenvalue above ``rank_tol·max(1, λ_max)`` (the test
+    :func:`advance_basis` applies to what a level owns), so that the cascade below it would have no free
+    direction left."""
     if r == 0:
         return True
     if r == 1:  # the usual last level (one self-motion direction): its curvature
-        return bool(qp.H[0, 0] > rank_tol * max(1.0, float(qp.H[0, 0])))
-    eig = np.linalg.eigvalsh(qp.H[:r, :r])
-    return bool(eig[0] > rank_tol * max(1.0, float(eig[-1])))
+        return H[0, 0] > rank_tol * max(1.0, H[0, 0])
+    eig = np.linalg.eigvalsh(np.ascontiguousarray(H[:r, :r]))
+    return eig[0] > rank_tol * max(1.0, eig[-1])
 
 
-def _fix_signs(Z: np.ndarray) -> np.ndarray:
-    """``Z`` with each column's largest-magnitude entry positive (the SVD's sign is
-    arbitrary; a stable sign keeps the previous tick's ``z`` a good warm start)."""
-    r = Z.shape[1]
-    if r == 1:  # the usual case (7-DOF arm, 6-D task): one self-motion direction
-        return -Z if Z[int(np.abs(Z[:, 0]).argmax()), 0] < 0.0 else Z
-    if r == 0:
-        return Z
-    flip = Z[np.abs(Z).argmax(axis=0), range(r)] < 0.0
-    if not flip.any():
-        return Z
-    Z = Z.copy()
-    Z[:, flip] *= -1.0
+@njit(cache=True)
+def fix_signs(Z):
+    """``Z`` with each column's largest-magnitude entry positive, in place (the SVD's sign is arbitrary; a
+    stable sign keeps the previous tick's ``z`` a good warm start)."""
+    n, r = Z.shape
+    for j in range(r):
+        big, at = -1.0, 0
+        for i in range(n):
+            if abs(Z[i, j]) > big:
+                big, at = abs(Z[i, j]), i
+        if Z[at, j] < 0.0:
+            for i in range(n):
+                Z[i, j] = -Z[i, j]
     return Z
 
 
-def advance_cascade(
-    level: Level | _LevelData, cascade: Cascade, qp: LevelQP, x: np.ndarray, settings: QPSettings = QPSettings()
-) -> Cascade:
-    """The cascade after ``level`` (whose QP is ``qp``) was solved with joint velocity ``x``.
+@njit(cache=True)
+def complement(p):
+    """An orthonormal basis (r, r − 1) of the directions orthogonal to the unit vector ``p``: columns 2…r of
+    the Householder reflector that maps ``p`` onto the first axis (LAPACK's ``dlarfg``; NumPy's complete QR of
+    ``p`` gives the same columns)."""
+    r = p.shape[0]
+    Q = np.eye(r)
+    alpha = p[0]
+    rest = 0.0
+    for i in range(1, r):
+        rest += p[i] * p[i]
+    if rest == 0.0:  # p is ±e1: the reflector is the identity
+        return Q[:, 1:].copy()
+    beta = -math.copysign(math.sqrt(alpha * alpha + rest), alpha)
+    tau = (beta - alpha) / beta
+    v = p / (alpha - beta)
+    v[0] = 1.0
+    for i in range(r):
+        for j in range(r):
+            Q[i, j] -= tau * v[i] * v[j]
+    return Q[:, 1:].copy()
 
-    Removes from the free basis the directions the level owns (module
-    docstring, items 1–3; all r×r work in z) and passes its constraints down,
-    widened to contain ``x``.
-    """
-    n = x.shape[0]
-    data = level if isinstance(level, _LevelData) else _validate_level(level, n, "level")
-    Z, full = cascade.Z, cascade.full
-    B = None  # orthonormal basis, in the current coordinates, of what stays free; None = all
-    if qp.free_z is not None and qp.free_z.shape[1] < Z.shape[1]:
-        B = qp.free_z
-    if data.H is not None:
-        M = Z.T @ data.H @ Z if full is False else data.H
-        if B is not None:
-            M = B.T @ M @ B
+
+@njit(cache=True)
+def advance_basis(level, Z, full, free_z, x, tol):
+    """The free basis after a level (module docstring, items 1–3; all r×r work in z): ``Z`` (n, r) the basis
+    the level was solved in (``full``: the identity), ``free_z`` (r, r − k) the task directions it leaves (r
+    columns: it owns none of its task's), ``x`` its answer (rad/s), ``tol`` the tolerance record.  Returns
+    ``(Z_next, changed)``: the directions left for the levels below, columns sign-fixed (:func:`fix_signs`),
+    and whether the level owned any."""
+    T = tol[0]
+    r = Z.shape[1]
+    B = free_z
+    owned = free_z.shape[1] < r
+    if level.H.shape[0]:
+        M = level.H.copy() if full else matmul(matmul(Z.T, level.H), Z)
+        if owned:
+            M = matmul(matmul(B.T, M), B)
         if M.shape[0]:
-            eigval, eigvec = np.linalg.eigh(0.5 * (M + M.T))
-            big = eigval > settings.rank_tol * max(1.0, float(np.abs(eigval).max()))
-            if big.any():
-                B = eigvec[:, ~big] if B is None else B @ eigvec[:, ~big]
-    grad = _objective_gradient(data, x) if data.H is not None or data.g is not None else None
-    if grad is not None:  # (a pure task's gradient lies in its owned range already)
-        p = grad if full else Z.T @ grad
-        if B is not None:
-            p = B.T @ p
-        norm_p = float(np.linalg.norm(p))
-        if p.shape[0] and norm_p > settings.gradient_tol * max(1.0, float(np.linalg.norm(grad))):
-            Q = np.linalg.qr((p / norm_p)[:, None], mode="complete")[0][:, 1:]  # complement of p
-            B = Q if B is None else B @ Q
-    if B is not None:
-        Z, full = _fix_signs(B if full else Z @ B), False
-    C, l, u = cascade.C, cascade.l, cascade.u
-    if data.C is not None:
-        assert data.l is not None and data.u is not None  # rows come with both sides
-        if C.shape[0]:
-            C, l, u = np.vstack([C, data.C]), np.concatenate([l, data.l]), np.concatenate([u, data.u])
-        else:
-            C, l, u = data.C, data.l, data.u
-    tol = settings.active_tol
-    if C.shape[0]:
-        l, u = _pass_down(l, C @ x, u, tol)
-    lb, ub = _pass_down(cascade.lb, x, cascade.ub, tol)
-    return Cascade(x=x, Z=Z, lb=lb, ub=ub, C=C, l=l, u=u, depth=cascade.depth + 1, full=full)
+            w, E = np.linalg.eigh(0.5 * (M + M.T))
+            big = w > T.rank_tol * max(1.0, np.abs(w).max())
+            keep = np.nonzero(~big)[0]
+            if keep.shape[0] < w.shape[0]:
+                Ek = np.ascontiguousarray(E[:, keep])
+                B = matmul(B, Ek) if owned else Ek
+                owned = True
+    if level.H.shape[0] or level.g.shape[0]:  # (a pure task's gradient lies in its owned range already)
+        grad = objective_gradient(level, x)
+        p = grad.copy() if full else matvec(Z.T, grad)
+        if owned:
+            p = matvec(B.T, p)
+        norm_p = math.sqrt(dot(p, p))
+        if p.shape[0] and norm_p > T.gradient_tol * max(1.0, math.sqrt(dot(grad, grad))):
+            Q = complement(p / norm_p)
+            B = matmul(B, Q) if owned else Q
+            owned = True
+    if not owned:
+        return Z, False
+    return fix_signs(np.ascontiguousarray(B) if full else matmul(Z, B)), True
 
 
-def _pass_down(lo: np.ndarray, value: np.ndarray, hi: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """Interval a lower level inherits: widened to contain ``value`` (a violation never
-    grows), and a side within ``tol`` of ``value`` moved onto it (exactly active), so an
-    inexact solver's answer a hair inside a bound does not leave a sliver of a feasible set."""
-    return np.where(value - lo < tol, value, lo), np.where(hi - value < tol, value, hi)
+@njit(cache=True)
+def pass_down(lo, value, hi, active_tol):
+    """The interval a lower level inherits, in place: widened to contain ``value`` (a violation never grows),
+    and a side within ``active_tol`` of ``value`` moved onto it (exactly active), so that an inexact solver's
+    answer a hair inside a bound does not leave a sliver of a feasible set."""
+    for i in range(value.shape[0]):
+        if value[i] - lo[i] < active_tol:
+            lo[i] = value[i]
+        if hi[i] - value[i] < active_tol:
+            hi[i] = value[i]
 
 
 @njit(cache=True)

@@ -8,7 +8,7 @@ and, when that line meets the bounds, the level's optimal set is exactly the
 segment ``t ∈ [t_lo, t_hi]`` (zero residual).  Level 1 is then known in closed
 form (its reported answer: the segment's least-norm point) and level 2 is a QP
 in ``t`` (plus its slacks) with the bounds as a box on ``t`` — the same QP that
-:func:`~qpnso.qp.cascade.build_level_qp` builds with ``Z = d``, solved by the same back end
+:func:`~qpnso.qp.cascade.level_qp_arrays` builds with ``Z = d``, solved by the same back end
 (ProxSuite, persistent and warm-started).  Whenever a bound cuts the line (the
 bounds bind the tool task), the task is near-singular, or there are more than
 two levels, the general cascade (:mod:`qpnso.qp.cascade`) runs.  The small factorisations are
@@ -32,12 +32,9 @@ from numba import njit
 
 from qpnso.linalg import dot, least_norm_line, matvec
 from qpnso.qp.arrays import Basis, LevelParts, QPArrays, Segment, qp_data_finite
-from qpnso.qp.cascade import LevelQP, level_answer, level_parts
+from qpnso.qp.cascade import level_answer, level_parts
 from qpnso.qp.levels import _LevelData
 from qpnso.qp.settings import QPSettings
-
-_OWNED_1 = np.ones((1, 1))
-_OWNED_0 = np.zeros((1, 0))
 
 
 @dataclass(slots=True)
@@ -131,12 +128,12 @@ def _task_line(data: _LevelData, lb: np.ndarray, ub: np.ndarray, settings: QPSet
 @njit(cache=True)
 def line_qp_arrays(segment, level, tol):
     """The QP of a level (:class:`~qpnso.qp.arrays.LevelParts`) restricted to the line ``x = x0 + t·d`` of
-    ``segment``, in ``v = [t; σ]``: :func:`build_level_qp`'s with ``Z = d`` in one dimension.
+    ``segment``, in ``v = [t; σ]``: :func:`~qpnso.qp.cascade.level_qp_arrays`' with ``Z = d`` in one dimension.
 
     Cost ``‖A x − b‖² + ½xᵀHx + gᵀx``: curvature and slope in ``t`` with the damping and tie-break of
     :func:`~qpnso.qp.cascade.level_qp_arrays` (``tol``: :func:`qpnso.qp.settings.tolerance_record`); rows
     ``l − C x0 ≤ (C d) t + slack_scale·σ ≤ u − C x0``; box ``[t_lo, t_hi]`` on ``t``, free slacks.
-    Returns the :class:`~qpnso.qp.arrays.QPArrays` and whether the task owns ``d``."""
+    Returns the :class:`~qpnso.qp.arrays.QPArrays`."""
     x0, d = segment.x0, segment.d
     A, H, g, C = level.A, level.H, level.g, level.C
     T = tol[0]
@@ -173,18 +170,15 @@ def line_qp_arrays(segment, level, tol):
             Cq[i, 1 + i] = level.slack_scale
     box_l, box_u = np.full(nv, -np.inf), np.full(nv, np.inf)
     box_l[0], box_u[0] = segment.t_lo, segment.t_hi
-    return QPArrays(Hq, gq, Cq, lq, uq, box_l, box_u), owned
+    return QPArrays(Hq, gq, Cq, lq, uq, box_l, box_u)
 
 
-def _line_level_qp(data: _LevelData, line: _Line, tol: np.ndarray) -> LevelQP:
-    """The QP of a level restricted to ``x = x0 + t·direction``: :func:`build_level_qp` with
+def _line_level_qp(data: _LevelData, line: _Line, tol: np.ndarray) -> QPArrays:
+    """The QP of a level restricted to ``x = x0 + t·direction``: :func:`~qpnso.qp.cascade.level_qp_arrays` with
     ``Z`` the line's direction (same damping and tie-break), the bounds folded into a box on ``t``;
     ``tol`` the solver's tolerances (:func:`qpnso.qp.settings.tolerance_record`)."""
     d = line.direction
-    ns = data.n_slack
-    qp, owned = line_qp_arrays(Segment(line.x0, d, line.t_lo, line.t_hi), level_parts(data, d.shape[0]), tol)
-    H, g, C, lo, hi, box_l, box_u = qp
-    return LevelQP(H, g, C, lo, hi, box_l, box_u, line.x0, d[:, None], _OWNED_1 if owned else _OWNED_0, None, ns, 0, 0)
+    return QPArrays(*line_qp_arrays(Segment(line.x0, d, line.t_lo, line.t_hi), level_parts(data, d.shape[0]), tol))
 
 
 LINE_ANSWER_OK, LINE_ANSWER_NOT_FINITE, LINE_ANSWER_VIOLATED = 0, 1, 2
@@ -267,7 +261,7 @@ def line_setup(problem, tol, line):
         p,
         1.0 / math.sqrt(2.0 * pb.slack_weight) if p else 0.0,
     )
-    qp, _ = line_qp_arrays(Segment(x0, d, t_lo, t_hi), level, tol)
+    qp = line_qp_arrays(Segment(x0, d, t_lo, t_hi), level, tol)
     if not qp_data_finite(qp):
         return LINE_NOT_FINITE
     H, g, C, lo, hi, box_l, box_u = qp

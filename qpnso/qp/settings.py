@@ -94,9 +94,11 @@ TOLERANCE_DTYPE = np.dtype(
         ("damping_threshold", np.float64),
         ("regularization", np.float64),
         ("feasibility_tol", np.float64),
+        ("gradient_tol", np.float64),
+        ("active_tol", np.float64),
     ]
 )
-"""The tolerances the line fast path's kernels read (:func:`qpnso.qp.line.line_setup`), by name."""
+"""The tolerances the cascade's and the line fast path's kernels read, by name."""
 
 
 def tolerance_record(settings: QPSettings) -> np.ndarray:
@@ -104,5 +106,12 @@ def tolerance_record(settings: QPSettings) -> np.ndarray:
     regularisation is 0: the solver resolves it before)."""
     record = new_record(TOLERANCE_DTYPE)
     s = settings
-    record[0] = (s.rank_tol, s.damping_threshold, s.regularization or 0.0, s.feasibility_tol)
+    record[0] = (
+        s.rank_tol,
+        s.damping_threshold,
+        s.regularization or 0.0,
+        s.feasibility_tol,
+        s.gradient_tol,
+        s.active_tol,
+    )
     return record

@@ -20,22 +20,25 @@ from typing import Sequence
 import numpy as np
 
 from qpnso.errors import ConfigError, InputError
-from qpnso.qp.arrays import Basis, QPArrays, Segment
+from qpnso.qp.arrays import QPArrays, Segment
 from qpnso.qp.backends import _make_backend, _Raw, active_set_solve, finite_data_raw, not_finite_raw, solved_vector
-from qpnso.qp.cascade import (
-    _NO_VECTOR,
-    Cascade,
-    LevelQP,
-    _c,
-    _eye,
-    advance_cascade,
-    build_level_qp,
-    level_answer,
-    strictly_convex,
+from qpnso.qp.cascade import _NO_VECTOR, level_parts
+from qpnso.qp.cascade_state import (
+    LEVEL_ADVANCED,
+    LEVEL_NOT_FINITE,
+    LEVEL_UNIQUE,
+    LEVEL_VIOLATED,
+    CascadeState,
+    build_least_norm,
+    build_level,
+    build_problem_level,
+    check_least_norm,
+    finish_level,
+    finish_problem_level,
+    problem_levels_count,
 )
 from qpnso.qp.levels import Level, _LevelData, _trusted_level, _validate_bounds, _validate_level
 from qpnso.qp.line import (
-    _OWNED_0,
     LINE_ANSWER_NOT_FINITE,
     LINE_ANSWER_OK,
     LINE_ANSWER_VIOLATED,
@@ -52,7 +55,7 @@ from qpnso.qp.line import (
     line_dtype,
     line_setup,
 )
-from qpnso.qp.problem import SOLVED, STOPPED, TOOL_HELD, problem_levels
+from qpnso.qp.problem import SOLVED, STOPPED, TOOL_HELD, new_solution
 from qpnso.qp.results import HQPResult, HQPStats, LevelResult, LevelStatus, level_failure
 from qpnso.qp.settings import NATIVE_BACKEND, QPSettings, tolerance_record
 from qpnso.records import new_record
@@ -89,7 +92,8 @@ class HierarchicalQP:
         self._line_for: np.dtype | None = None
         self._line_nv = self._line_p = np.zeros(0, dtype=np.int64)
         self._line_fast_path = settings.line_fast_path
-        self._box_native = backend == NATIVE_BACKEND and settings.box_constraints
+        self._state: CascadeState | None = None  # the cascade record for problems of one record type
+        self._state_for: np.dtype | None = None
         self._line_views: dict[tuple[int, int], QPArrays] = {}
 
     def solve(
@@ -133,21 +137,26 @@ class HierarchicalQP:
             lo = np.full(self.n, -np.inf) if lb is None else np.asarray(lb, dtype=float)
             hi = np.full(self.n, np.inf) if ub is None else np.asarray(ub, dtype=float)
         line = _task_line(data[0], lo, hi, self.settings) if self.settings.line_fast_path and len(data) <= 2 else None
-        results = self._solve_cascade(data, lo, hi, time_budget) if line is None else self._solve_on_line(data, line)
+        if line is not None:
+            return self._finish(self._solve_on_line(data, line), len(data), t0)
+        results = self._solve_cascade(_CallerLevels(data, self.n, self._tol), lo, hi, time_budget)
         return self._finish(results, len(data), t0)
 
     def _solve_cascade(
-        self, data: list[_LevelData], lo: np.ndarray, hi: np.ndarray, time_budget: float | None = None
+        self, levels: "_Levels", lo: np.ndarray, hi: np.ndarray, time_budget: float | None = None
     ) -> list[LevelResult]:
-        """Level after level in the null-space basis; stops at the first failed level, or before a level
-        that would overrun ``time_budget`` (s of CPU time, :meth:`solve`).  The last solved level's answer is
-        then made unique: the least-norm point of its optimal set (:meth:`_least_norm`), never whatever a
-        solver's warm start left along the directions no level owns."""
-        cascade = Cascade.start(lo, hi)
+        """Level after level in the null-space basis, on ``levels``' cascade record
+        (:mod:`qpnso.qp.cascade_state`: two kernel calls and a back-end solve a level); stops at the first
+        failed level, or before a level that would overrun ``time_budget`` (s of CPU time, :meth:`solve`).
+        The last solved level's answer is then made unique: the least-norm point of its optimal set
+        (:meth:`_least_norm`), never whatever a solver's warm start left along the directions no level owns."""
+        state = levels.state
+        state.start(lo, hi)
         results: list[LevelResult] = []
-        solved = None  # the cascade after the last solved level
+        free = 0  # directions left free after the last level that advanced the state (0: none advanced)
+        count = levels.count
         start = level_start = time.thread_time() if time_budget is not None else 0.0
-        for k, level in enumerate(data):
+        for k in range(count):
             if k and time_budget is not None and _out_of_time(start, level_start, time_budget):
                 results.append(
                     LevelResult(
@@ -157,30 +166,58 @@ class HierarchicalQP:
                 )
                 break
             level_start = time.thread_time() if time_budget is not None else 0.0
-            qp = build_level_qp(level, cascade, self.settings, self._tol)
-            result = self._solve_level(k, level, qp)
+            t_level = time.perf_counter()
+            nv, m, box, finite, r = levels.build(k)
+            if nv == 0 or r == 0:  # nothing left to choose: x = x_prev, slack as it falls
+                raw = _Raw(np.zeros(nv), LevelStatus.SOLVED, 0, "no free direction left")
+            else:
+                raw = self._backend.solve_arrays(k, state.qp(nv, m, box)) if finite else not_finite_raw()
+            result, code, left = self._judge(levels, k, raw, r, k == count - 1)
+            result.solve_time_s = time.perf_counter() - t_level
             results.append(result)
+            if code == LEVEL_UNIQUE:
+                return results  # its answer is unique already: no optimal set left to search
             if not result.ok:
                 break
-            assert result.x is not None  # a solved level has its x
-            if k == len(data) - 1 and strictly_convex(qp, self.settings.rank_tol):
-                return results  # its answer is unique already: no optimal set left to search
-            cascade = solved = advance_cascade(level, cascade, qp, result.x, self.settings)
-        if solved is not None and solved.Z.shape[1]:
+            free = left
+        if free:
             last = results[-1] if results[-1].ok else results[-2]
-            last.x = self._least_norm(solved)
+            last.x = self._least_norm(state)
         return results
 
-    def _least_norm(self, cascade: Cascade) -> np.ndarray:
-        """The least-norm joint velocity (rad/s) of the optimal set ``x + Z z`` that ``cascade`` leaves
+    def _judge(self, levels: "_Levels", k: int, raw: _Raw, r: int, last: bool) -> tuple[LevelResult, int, int]:
+        """A back end's answer to level ``k`` checked and, if accepted, the state advanced
+        (:func:`~qpnso.qp.cascade_state.finish_level`): the level's result, the kernel's code and the
+        directions left free."""
+        if raw.status is not LevelStatus.SOLVED or raw.v is None:
+            status = raw.status if raw.status is not LevelStatus.SOLVED else LevelStatus.INACCURATE
+            return LevelResult(status, iterations=raw.iterations, message=raw.message), LEVEL_NOT_FINITE, 0
+        code, left = levels.finish(k, raw.v, last)
+        if code == LEVEL_NOT_FINITE or code == LEVEL_VIOLATED:
+            return _refused(raw, code, r, levels.state), code, 0
+        state = levels.state
+        x = state.xk.copy()
+        ns = int(state.n_slack[0])
+        result = LevelResult(
+            LevelStatus.SOLVED,
+            x=x,
+            residual=levels.residual(k, x),
+            slack=state.slack[:ns].copy() if ns else None,
+            iterations=raw.iterations,
+            message=raw.message,
+        )
+        return result, code, left
+
+    def _least_norm(self, state: CascadeState) -> np.ndarray:
+        """The least-norm joint velocity (rad/s) of the optimal set ``x + Z z`` that the cascade leaves
         (bounds and inherited rows kept): ``min ½‖x + Z z‖²``, strictly convex in ``z``, solved by DAQP
-        (:func:`active_set_solve`: exact, finite).  ``cascade.x`` itself if that fails (it is feasible)."""
-        n = cascade.x.shape[0]
-        data = _LevelData(None, None, None, None, _eye(n), None, None, None, None, None)
-        qp = build_level_qp(data, cascade, self.settings, self._tol)
-        raw = active_set_solve(qp.arrays, self.settings.max_iter_active_set)
-        result = self._check(data, qp, raw)
-        return result.x if result.ok and result.x is not None else cascade.x  # (solved: x is set)
+        (:func:`active_set_solve`: exact, finite).  The state's ``x`` itself if that fails (it is feasible)."""
+        nv, m, box, _, _ = build_least_norm(state.record, state.buffer, state.tol)
+        raw = active_set_solve(state.qp(nv, m, box), self.settings.max_iter_active_set)
+        ok = raw.status is LevelStatus.SOLVED and raw.v is not None
+        if ok and check_least_norm(state.record, state.buffer, raw.v, state.tol) == LEVEL_ADVANCED:
+            return state.xk.copy()
+        return state.x
 
     def reset(self) -> None:
         """Forget every warm start, persistent solver object and counter: from here the solver
@@ -188,35 +225,37 @@ class HierarchicalQP:
         self.stats = HQPStats()
         self._backend = _make_backend(self.backend, self.settings, self.stats)
 
-    def warm_up(self, line: bool = True) -> None:
-        """Load (or compile, once per machine) every kernel of the cascade by solving two small ones (a
-        two-row task above a task, a cost and soft and hard rows: the general cascade; with ``line``, an
-        (n−1)-row task above a cost with a soft row: :meth:`solve`'s line fast path), then :meth:`reset`: a
-        control tick that first takes a path must not pay for it (loading two kernels took 30–60 ms,
-        measured).  A :class:`~qpnso.control.controller.Controller` needs only the general cascade (its
-        ticks' line is :meth:`solve_problem`'s, warmed by its own dry ticks): ``line=False``."""
+    def warm_up(self, line: bool = True, problem: np.ndarray | None = None) -> None:
+        """Load (or compile, once per machine) every kernel of the cascade by solving small ones (a
+        two-row task above a task with a soft row, above a linear cost with a hard row: the general cascade
+        and its least-norm step; with ``line``, an
+        (n−1)-row task above a cost with a soft row: :meth:`solve`'s line fast path; with ``problem``, a tick's
+        problem record of that record type through the general cascade, :meth:`solve_problem`'s kernels being
+        compiled per record type), then :meth:`reset`: a control tick that first takes a path must not pay for
+        it (loading two kernels took 30–60 ms, measured).  A :class:`~qpnso.control.controller.Controller`
+        warms its problem's cascade here and its line with its own dry ticks: ``line=False``."""
         n = self.n
         eye = np.eye(n)
         self.solve(
             [
                 Level(A=eye[:2], b=np.ones(2)),
-                Level(A=eye[2:3], b=np.ones(1), H=eye, C=eye[:1], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0),
-                Level(g=np.ones(n), C=eye[1:2], l=-np.ones(1), u=np.ones(1)),
+                Level(A=eye[2:3], b=np.ones(1), C=eye[:1], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0),
+                Level(g=np.ones(n), C=eye[1:2], l=-np.ones(1), u=np.ones(1)),  # (three directions left: least norm)
             ],
             -np.ones(n),
             np.ones(n),
         )
-        if not line:
-            self.reset()
-            return
-        self.solve(
-            [
-                Level(A=eye[: n - 1], b=np.zeros(n - 1)),  # the line fast path's kernels
-                Level(H=eye, g=np.ones(n), C=eye[n - 1 :], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0),
-            ],
-            -np.ones(n),
-            np.ones(n),
-        )
+        if problem is not None:
+            self._solve_problem_levels(_warm_up_problem(problem), new_solution(n), None)
+        if line:
+            self.solve(
+                [
+                    Level(A=eye[: n - 1], b=np.zeros(n - 1)),  # the line fast path's kernels
+                    Level(H=eye, g=np.ones(n), C=eye[n - 1 :], l=np.zeros(1), u=np.zeros(1), slack_weight=1.0),
+                ],
+                -np.ones(n),
+                np.ones(n),
+            )
         self.reset()
 
     def _solve_on_line(self, data: list[_LevelData], line: _Line) -> list[LevelResult]:
@@ -236,27 +275,15 @@ class HierarchicalQP:
             return [first]
         level = data[1]
         qp = _line_level_qp(level, line, self._tol)
-        arrays = qp.arrays
-        raw = finite_data_raw(arrays) or self._line_raw(arrays, qp)
-        second = self._line_result(raw, qp, line)
+        raw = finite_data_raw(qp) or self._backend.solve_arrays(1, qp)
+        second = self._line_result(raw, qp, level.n_slack, line)
         if second.ok:
             assert second.x is not None  # a solved level has its x
             second.residual = _residual(level, second.x)
         second.solve_time_s = time.perf_counter() - t2
         return [first, second]
 
-    def _line_raw(self, qp: QPArrays, level_qp: LevelQP | None = None) -> _Raw:
-        """The back end's answer to a line's level 2 (``v = [t; σ]``) on its persistent level-2 object,
-        unchecked; ``level_qp`` the same QP as a :class:`LevelQP` for a back end without a native box."""
-        if self._box_native:
-            return self._backend.solve_arrays(1, qp)
-        if level_qp is None:
-            H, g, C, l, u, box_l, box_u = qp
-            level_qp = LevelQP(H, g, C, l, u, box_l, box_u, _NO_VECTOR, _NO_BASIS, _OWNED_0, None, C.shape[0], 0, 0)
-            # (a back end reads H, g, the rows and the box only)
-        return self._backend.solve(1, level_qp)
-
-    def _line_result(self, raw: _Raw, qp: LevelQP, line: _Line) -> LevelResult:
+    def _line_result(self, raw: _Raw, qp: QPArrays, n_slack: int, line: _Line) -> LevelResult:
         """A raw line answer judged (:func:`checked_line_answer`: box on ``t`` and hard rows within
         ``feasibility_tol``) with the soft rows' slack."""
         if raw.status is not LevelStatus.SOLVED:
@@ -265,11 +292,11 @@ class HierarchicalQP:
         v = solved_vector(raw, qp.g.shape)
         if v is not None:
             segment = Segment(line.x0, line.direction, line.t_lo, line.t_hi)
-            code, x, worst, slack = checked_line_answer(v, segment, qp.arrays, qp.n_slack, self._tol)
+            code, x, worst, slack = checked_line_answer(v, segment, qp, n_slack, self._tol)
         if code != LINE_ANSWER_OK:
             return LevelResult(LevelStatus.INACCURATE, iterations=raw.iterations, message=_refusal(raw, code, worst))
         return LevelResult(
-            LevelStatus.SOLVED, x=x, slack=slack if qp.n_slack else None, iterations=raw.iterations, message=raw.message
+            LevelStatus.SOLVED, x=x, slack=slack if n_slack else None, iterations=raw.iterations, message=raw.message
         )
 
     def solve_problem(self, problem: np.ndarray, solution: np.ndarray, time_budget: float | None = None) -> str:
@@ -289,7 +316,7 @@ class HierarchicalQP:
         if code == LINE_NOT_FINITE:
             raw = _Raw(None, LevelStatus.SOLVER_ERROR, 0, "non-finite QP data (NaN or inf in the problem)")
         elif nv:
-            raw = self._line_raw(self._line_arrays(line, nv, self._line_p[0]))
+            raw = self._backend.solve_arrays(1, self._line_arrays(line, nv, self._line_p[0]))
         else:
             raw = _Raw(_NO_VECTOR, LevelStatus.SOLVED, 0, "")
         v = solved_vector(raw, (nv,)) if code == LINE_OK else None
@@ -329,13 +356,13 @@ class HierarchicalQP:
         return views
 
     def _solve_problem_levels(self, problem: np.ndarray, solution: np.ndarray, time_budget: float | None) -> str:
-        """The problem through the general cascade (:meth:`solve`'s, on its levels, unchecked), into ``solution``.
-        Straight to the cascade: :func:`~qpnso.qp.line.line_setup` has found no line for this problem (or the
-        line fast path is off), and :meth:`solve`'s own line test, on the same level 1, would find none either."""
+        """The problem through the general cascade, its levels read from the record by the kernels
+        (:func:`~qpnso.qp.cascade_state.problem_level`), into ``solution``.  Straight to the cascade:
+        :func:`~qpnso.qp.line.line_setup` has found no line for this problem (or the line fast path is off)."""
         P, S = problem[0], solution[0]
         t0 = time.perf_counter()
-        data = [_trusted_level(level) for level in problem_levels(problem)]
-        result = self._finish(self._solve_cascade(data, P["lb"], P["ub"], time_budget), len(data), t0)
+        levels = _ProblemLevels(problem, self._problem_state(problem))
+        result = self._finish(self._solve_cascade(levels, P["lb"], P["ub"], time_budget), levels.count, t0)
         first, last = result.levels[0], result.levels[-1]
         S["out_of_time"] = result.out_of_time
         S["x1"] = first.x if first.x is not None else 0.0
@@ -346,22 +373,20 @@ class HierarchicalQP:
         S["outcome"] = SOLVED if result.ok else (TOOL_HELD if held else STOPPED)
         return "" if result.ok else result.status
 
+    def _problem_state(self, problem: np.ndarray) -> CascadeState:
+        """The cascade record for problems of this one's record type (made once per type)."""
+        state = self._state
+        if state is None or problem.dtype is not self._state_for:
+            rows, soft = problem.dtype["hard_l"].shape[0], problem.dtype["soft_l"].shape[0]
+            state = self._state = CascadeState(self.n, rows + soft, soft, self._tol)
+            self._state_for = problem.dtype
+        return state
+
     def _count(self, ok: bool) -> None:
         """Count one cascade in ``stats``."""
         self.stats.solves += 1
         if not ok:
             self.stats.failures += 1
-
-    def _solve_level(self, k: int, level: _LevelData, qp: LevelQP) -> LevelResult:
-        """Back-end solve of one level's QP and verification of its answer."""
-        t_level = time.perf_counter()
-        if qp.H.shape[0] == 0 or qp.r == 0:  # nothing left to choose: x = x_prev, slack as it falls
-            raw = _Raw(np.zeros(qp.H.shape[0]), LevelStatus.SOLVED, 0, "no free direction left")
-        else:
-            raw = self._backend.solve(k, qp) if qp.finite else not_finite_raw()
-        result = self._check(level, qp, raw)
-        result.solve_time_s = time.perf_counter() - t_level
-        return result
 
     def _finish(self, results: list[LevelResult], n_levels: int, t0: float) -> HQPResult:
         """The cascade's result: the last good level's answer, the first failure named."""
@@ -379,36 +404,80 @@ class HierarchicalQP:
             solve_time_s=time.perf_counter() - t0,
         )
 
-    def _check(self, level: _LevelData, qp: LevelQP, raw: _Raw) -> LevelResult:
-        """Verify a level's answer: finite, and every bound and hard row (this level's and
-        the inherited ones) within ``feasibility_tol`` (:func:`level_answer`); report residual and slack."""
-        if raw.status is not LevelStatus.SOLVED:
-            return LevelResult(raw.status, iterations=raw.iterations, message=raw.message)
-        v = raw.v
-        if v is None or v.shape != qp.g.shape or not math.isfinite(v.sum()):
-            return LevelResult(
-                LevelStatus.INACCURATE,
-                iterations=raw.iterations,
-                message=f"{raw.message}: non-finite or mis-shaped solution",
-            )
-        basis = Basis(_c(qp.x_prev), _c(qp.Z), qp.r == qp.Z.shape[0], True)
-        x, worst, slack = level_answer(_c(v), basis, qp.arrays, qp.slack_start, qp.n_slack)
-        if not worst <= self.settings.feasibility_tol:
-            status = LevelStatus.INFEASIBLE if qp.r == 0 else LevelStatus.INACCURATE
-            return LevelResult(
-                status, iterations=raw.iterations, message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}"
-            )
+
+def _warm_up_problem(problem: np.ndarray) -> np.ndarray:
+    """A problem record of ``problem``'s type whose general cascade runs every kernel: level 1 two task rows
+    and a hard row (five directions left free), level 2 a one-row task, a linear term and a soft row (two
+    more owned), then the least-norm step on the three left."""
+    p = np.zeros_like(problem)
+    P = p[0]
+    n = P["lb"].shape[0]
+    P["A1"][:2] = np.eye(n)[:2]
+    P["lb"], P["ub"] = -np.ones(n), np.ones(n)
+    P["n_hard"], P["hard_C"][0], P["hard_l"][0], P["hard_u"][0] = 1, np.eye(n)[2], -1.0, 1.0
+    P["has_level2"], P["m2"], P["A2"][0], P["b2"][0] = 1, 1, np.eye(n)[3], 0.5
+    P["use_H2"], P["H2"], P["use_g2"], P["g2"] = 0, np.eye(n), 1, np.ones(n)
+    P["n_soft"], P["soft_C"][0], P["soft_l"][0], P["soft_u"][0], P["slack_weight"] = 1, np.eye(n)[4], -1.0, 1.0, 1.0
+    return p
+
+
+class _CallerLevels:
+    """A caller's levels (:meth:`HierarchicalQP.solve`) as the cascade runs them: their parts passed to the
+    kernels (:func:`~qpnso.qp.cascade.level_parts`), on a cascade record sized for them."""
+
+    def __init__(self, data: list[_LevelData], n: int, tol: np.ndarray) -> None:
+        self.data, self.count = data, len(data)
+        self.parts = [level_parts(level, n) for level in data]
+        rows = sum(0 if level.C is None else level.C.shape[0] for level in data)
+        self.state = CascadeState(n, rows, max(level.n_slack for level in data), tol)
+
+    def build(self, k: int) -> tuple[int, int, int, int, int]:
+        return build_level(self.state.record, self.state.buffer, self.parts[k], self.state.tol)
+
+    def finish(self, k: int, v: np.ndarray, last: bool) -> tuple[int, int]:
+        return finish_level(self.state.record, self.state.buffer, self.parts[k], v, last, self.state.tol)
+
+    def residual(self, k: int, x: np.ndarray) -> float | None:
+        return _residual(self.data[k], x)
+
+
+class _ProblemLevels:
+    """A tick's problem record as the cascade runs it: the kernels read its levels from the record
+    (:func:`~qpnso.qp.cascade_state.problem_level`); level 1's residual is the tool's (weight 1)."""
+
+    def __init__(self, problem: np.ndarray, state: CascadeState) -> None:
+        self.problem, self.state = problem, state
+        self.count = problem_levels_count(problem)
+
+    def build(self, k: int) -> tuple[int, int, int, int, int]:
+        return build_problem_level(self.state.record, self.state.buffer, self.problem, k, self.state.tol)
+
+    def finish(self, k: int, v: np.ndarray, last: bool) -> tuple[int, int]:
+        return finish_problem_level(self.state.record, self.state.buffer, self.problem, k, v, last, self.state.tol)
+
+    def residual(self, k: int, x: np.ndarray) -> float | None:
+        value = float(self.state.residual[0])
+        return None if value < 0.0 else value
+
+
+_Levels = _CallerLevels | _ProblemLevels
+
+
+def _refused(raw: _Raw, code: int, r: int, state: CascadeState) -> LevelResult:
+    """The result of a level whose answer :func:`~qpnso.qp.cascade_state.finish_level` refused: not finite or
+    mis-shaped, or a bound or hard row violated (infeasible when no direction was free, else inaccurate)."""
+    if code == LEVEL_NOT_FINITE:
         return LevelResult(
-            LevelStatus.SOLVED,
-            x=x,
-            residual=_residual(level, x),
-            slack=slack if qp.n_slack else None,
+            LevelStatus.INACCURATE,
             iterations=raw.iterations,
-            message=raw.message,
+            message=f"{raw.message}: non-finite or mis-shaped solution",
         )
-
-
-_NO_BASIS = np.zeros((0, 0))
+    worst = float(state.worst[0])
+    return LevelResult(
+        LevelStatus.INFEASIBLE if r == 0 else LevelStatus.INACCURATE,
+        iterations=raw.iterations,
+        message=f"{raw.message}: bounds or hard rows violated by {worst:.3g}",
+    )
 
 
 def _refusal(raw: _Raw, code: int, worst: float) -> str:

@@ -4,8 +4,8 @@ Three parts:
 
 * **Problem sets**: the QPs of every level, tick by tick, recorded from real
   controller runs by wrapping ``ctrl.qp.solve`` of one instance
-  (:class:`QPRecorder`) and rebuilding each level with the cascade's public
-  functions (:func:`qpnso.qp.cascade.build_level_qp`, :func:`qpnso.qp.cascade.advance_cascade`),
+  (:class:`QPRecorder`) and rebuilding each level on the cascade's record
+  (:class:`qpnso.qp.cascade_state.CascadeState`: ``build``, ``advance``),
   advanced with the controller's own answer of the level above: the benchmark
   solves exactly the QPs the controller solved.  Stored form (:class:`BenchProblem`):
   ``min ½vᵀPv + qᵀv  s.t.  l ≤ Cv ≤ u,  box_l ≤ v ≤ box_u`` (∓inf allowed), the

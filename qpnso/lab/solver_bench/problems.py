@@ -27,7 +27,7 @@ PROBLEM_DIR = Path(__file__).resolve().parents[3] / "solvers" / "problems"
 
 @dataclass
 class BenchProblem:
-    """One level's QP of one tick, in the variable ``v = [z; σ]`` of :class:`qpnso.qp.cascade.LevelQP`.
+    """One level's QP of one tick, in the variable ``v = [z; σ]`` of its cascade level (:mod:`qpnso.qp.cascade_state`).
 
     ``min ½vᵀPv + qᵀv`` s.t. ``l ≤ Cv ≤ u`` and ``box_l ≤ v ≤ box_u`` (None: no box).
     ``x_prev`` (n,) and ``Z`` (n, r) decode a solution into joint velocity

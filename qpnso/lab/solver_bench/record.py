@@ -17,9 +17,13 @@ from qpnso.lab.solver_bench.backends import NATIVE
 from qpnso.lab.solver_bench.problems import BenchProblem, save_problems
 from qpnso.lab.solver_bench.runs import compute_reference
 from qpnso.qp import Level, QPSettings
-from qpnso.qp.cascade import Cascade, LevelQP, advance_cascade, build_level_qp
+from qpnso.qp.arrays import QPArrays
+from qpnso.qp.cascade import level_parts
+from qpnso.qp.cascade_state import CascadeState
+from qpnso.qp.levels import _validate_level
 from qpnso.qp.problem import STOPPED, problem_levels
 from qpnso.qp.results import HQPResult, LevelResult, LevelStatus
+from qpnso.qp.settings import tolerance_record
 
 BENCH_REGULARIZATION = 1e-7
 """μ the recorded problems are built with: the controller's value for every ``qpsolvers`` back end
@@ -38,31 +42,43 @@ def level_problems(
 ) -> list[BenchProblem]:
     """The QP of each level (``n`` joint velocities) the controller's solver was asked (docs/method.md §7).
 
-    Rebuilds the cascade with :func:`build_level_qp` / :func:`advance_cascade`,
-    advanced with the controller's own answer ``result.levels[k].x`` (an
-    :class:`qpnso.qp.HQPResult`), so each problem is the one the back end got.
-    Levels with no free direction (no QP was solved) and levels after a
-    failed one are left out.
+    Rebuilds the cascade on its record (:class:`qpnso.qp.cascade_state.CascadeState`), advanced with the
+    controller's own answer ``result.levels[k].x`` (an :class:`qpnso.qp.HQPResult`), so each problem is the
+    one the back end got.  Levels with no free direction (no QP was solved) and levels after a failed one
+    are left out.
     """
     lo = np.full(n, -np.inf) if lb is None else np.asarray(lb, dtype=float).copy()
     hi = np.full(n, np.inf) if ub is None else np.asarray(ub, dtype=float).copy()
-    cascade = Cascade.start(lo, hi)
+    data = [_validate_level(level, n, f"levels[{k}]") for k, level in enumerate(levels)]
+    rows = sum(0 if d.C is None else d.C.shape[0] for d in data)
+    state = CascadeState(n, rows, max(d.n_slack for d in data), tolerance_record(settings))
+    state.start(lo, hi)
     out: list[BenchProblem] = []
-    for k, (level, res) in enumerate(zip(levels, result.levels)):
+    for k, (level, res) in enumerate(zip(data, result.levels)):
         if not res.ok:
             break
-        qp = build_level_qp(level, cascade, settings)
-        if qp.H.shape[0] and qp.r:
-            out.append(_from_level_qp(qp, f"{sequence}/t{tick:05d}/L{k + 1}", sequence, k + 1, tick, res.x))
+        parts = level_parts(level, n)
+        x_prev, Z = state.x, state.Z
+        qp, _ = state.build(parts)
+        if qp.H.shape[0] and Z.shape[1]:
+            out.append(_from_level_qp(qp, x_prev, Z, f"{sequence}/t{tick:05d}/L{k + 1}", sequence, k + 1, tick, res.x))
         if k + 1 < len(levels):
-            cascade = advance_cascade(level, cascade, qp, res.x, settings)
+            state.advance(parts, res.x)
     return out
 
 
 def _from_level_qp(
-    qp: LevelQP, name: str, sequence: str, level: int, tick: int, x_controller: np.ndarray | None
+    qp: QPArrays,
+    x_prev: np.ndarray,
+    Z: np.ndarray,
+    name: str,
+    sequence: str,
+    level: int,
+    tick: int,
+    x_controller: np.ndarray | None,
 ) -> BenchProblem:
     P = 0.5 * (qp.H + qp.H.T)  # symmetric to the last bit (it is up to ~1e-17; sip refuses otherwise)
+    box = qp.box_l.shape[0] > 0
     return BenchProblem(
         name,
         sequence,
@@ -73,10 +89,10 @@ def _from_level_qp(
         _copy(qp.C),
         _copy(qp.l),
         _copy(qp.u),
-        _copy_or_none(qp.box_l),
-        _copy_or_none(qp.box_u),
-        _copy(qp.x_prev),
-        _copy(qp.Z),
+        _copy(qp.box_l) if box else None,
+        _copy(qp.box_u) if box else None,
+        x_prev,
+        Z,
         _copy_or_none(x_controller),
     )
 

@@ -290,24 +290,39 @@ def test_a_dropped_elbow_at_a_pose_that_fixes_it_is_not_a_failure_to_recover(che
 
 
 def test_solver_clock_measures_the_solver_calls_of_a_tick() -> None:
-    """:class:`SolverClock` counts the CPU time of ``solve`` calls (a busy loop of 2 ms CPU here) and falls
-    back to the tick's CPU time when no solve ran (the compiled tick)."""
+    """:class:`SolverClock` counts the CPU time of ``solve_problem`` calls (a busy loop of 2 ms CPU here, called
+    twice: a tick solved twice), not of other calls (``solve``), and 0 when nothing was solved; and on a real
+    controller it wraps the method every tick calls (a tick's solver time is > 0)."""
     import time
 
+    import qpnso
     from qpnso.lab.fuzz import SolverClock
 
     class Busy:
-        def solve(self) -> int:
+        def solve_problem(self) -> int:
             end = time.thread_time() + 2e-3
             while time.thread_time() < end:
                 pass
             return 7
 
+        def solve(self) -> int:
+            end = time.thread_time() + 2e-3
+            while time.thread_time() < end:
+                pass
+            return 8
+
     busy = Busy()
     clock = SolverClock(busy)
-    assert busy.solve() == 7
-    assert 2e-3 <= clock.take(1.0) < 0.1
-    assert clock.take(0.25) == 0.25  # nothing ran: the tick's
+    assert busy.solve_problem() == 7 and busy.solve_problem() == 7 and busy.solve() == 8
+    assert 4e-3 <= clock.take() < 6e-3
+    assert clock.take() == 0.0  # nothing ran since
+    robot = qpnso.load_robot("lwr4p", tool_offset=[0, 0, 0.1])
+    ctrl = qpnso.Controller(robot, qpnso.ControllerConfig())
+    clock = SolverClock(ctrl.qp)
+    q = robot.sample_configuration()
+    ctrl.reset(q)
+    ctrl.step(q)
+    assert clock.take() > 0.0
 
 
 def test_realtime_gc_freezes_for_the_block_and_unfreezes() -> None:

@@ -53,9 +53,9 @@ stay owned by their level (frozen for lower levels); directions with
 
 A level's answer is checked in joint space by one kernel, :func:`level_answer` (bounds and hard
 rows within ``feasibility_tol``, each soft row's slack), which the line fast path
-(:mod:`qpnso.qp.line`) shares.  The per-tick arithmetic is in Numba kernels
-(:func:`level_qp_arrays`, :func:`level_answer`); :class:`~qpnso.qp.solver.HierarchicalQP` runs the
-cascade level after level.
+(:mod:`qpnso.qp.line`) shares.  All of it is Numba kernels (:func:`level_qp_arrays`,
+:func:`level_answer`, :func:`advance_basis`, :func:`pass_down`); :mod:`qpnso.qp.cascade_state` runs them on
+the cascade's state, and :class:`~qpnso.qp.solver.HierarchicalQP` runs the cascade level after level.
 """
 
 from __future__ import annotations

@@ -27,28 +27,27 @@ if TYPE_CHECKING:  # the runner imports the episode
 
 
 class SolverClock:
-    """The CPU time (``time.thread_time``, s) a controller spends in ``HierarchicalQP.solve`` (the general
-    path's solver time is that call's wall time), measured by wrapping the controller's solver object."""
+    """The CPU time (``time.thread_time``, s) a controller spends in its solver's ``solve_problem`` — the call
+    every tick's QP goes through, both passes of a tick solved twice — measured by wrapping the controller's
+    solver object.  (Until issue 13's fifth session this wrapped ``solve``, which no tick has called since the
+    one tick path of issue 15: every tick then fell back to the whole step's CPU time.)"""
 
     def __init__(self, qp: object) -> None:
-        self.seconds, self.calls = 0.0, 0
-        solve = qp.solve  # type: ignore[attr-defined]
+        self.seconds = 0.0
+        solve_problem = qp.solve_problem  # type: ignore[attr-defined]
 
         def timed(*args: object, **kwargs: object) -> object:
             start = time.thread_time()
             try:
-                return solve(*args, **kwargs)
+                return solve_problem(*args, **kwargs)
             finally:
                 self.seconds += time.thread_time() - start
-                self.calls += 1
 
-        qp.solve = timed  # type: ignore[attr-defined]
+        qp.solve_problem = timed  # type: ignore[attr-defined]
 
-    def take(self, tick_cpu: float) -> float:
-        """The solver's CPU time since the last call: the wrapped solve's if it ran, else ``tick_cpu`` (the
-        compiled tick's solver time spans most of its step: the whole step's CPU time bounds it)."""
-        seconds = self.seconds if self.calls else tick_cpu
-        self.seconds, self.calls = 0.0, 0
+    def take(self) -> float:
+        """The solver's CPU time since the last call (0 when it did not run)."""
+        seconds, self.seconds = self.seconds, 0.0
         return seconds
 
 
@@ -184,7 +183,7 @@ class Episode:
         chk.drift(self.hold, error, self.previous, where, inputs)
         if self.rng.random() < cfg.p_probe_burst:
             self._probe_burst()
-        self.clock.take(0.0)  # bad inputs may have called the solver: not this tick's
+        self.clock.take()  # bad inputs may have called the solver: not this tick's
         cpu = time.thread_time()
         cmd = self._step(twist, dq_in, inputs)
         cpu = time.thread_time() - cpu
@@ -192,7 +191,7 @@ class Episode:
         if cmd is not None and cmd.status & Status.QP_DEADLINE:
             self.report.deadline_ticks += 1
         finite = cmd is not None and chk.command(
-            cmd, self.q, where, inputs, cpu_time=cpu, solver_cpu_time=self.clock.take(cpu)
+            cmd, self.q, where, inputs, cpu_time=cpu, solver_cpu_time=self.clock.take()
         )
         self.failures_in_row = 0 if finite else self.failures_in_row + 1
         if cmd is not None and self.strategy in cfg.rom_strategies:

@@ -141,7 +141,7 @@ def send_probe(
     where = replace(where, phase=f"probe {probe.kind}")
     inputs = {"probe": probe.kind, "description": probe.description, **probe.kwargs}
     if clock is not None:
-        clock.take(0.0)
+        clock.take()
     cpu = time.thread_time()
     try:
         with warnings.catch_warnings():
@@ -165,7 +165,7 @@ def send_probe(
                 inputs,
                 timed=False,
                 cpu_time=cpu,
-                solver_cpu_time=math.inf if clock is None else clock.take(cpu),
+                solver_cpu_time=math.inf if clock is None else clock.take(),
             )
     rep.count_probe(probe.kind, outcome)
     return outcome

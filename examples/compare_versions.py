@@ -10,7 +10,7 @@ in turns of 250 ticks (`qpnso.lab.benchmark.interleaved`): on a shared VM whose 
 2x over seconds, only rows timed side by side can be compared (separate runs of the same
 code differed by 30 %, measured). Prints each strategy's median and p99 for both versions
 and their ratio; the tool is held from the robot's sample configuration (``--moving``: it moves on a
-small circle, :func:`qpnso.lab.benchmark.moving_tool_ticks`; Pink's row stays a held tool).
+5 cm circle at 0.5 Hz while turning, :class:`qpnso.lab.benchmark.MovingTarget`, Pink's row too).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 import qpnso
-from qpnso.lab.benchmark import held_tool_ticks, interleaved, moving_tool_ticks, pink_ticks
+from qpnso.lab.benchmark import MovingTarget, held_tool_ticks, interleaved, moving_tool_ticks, pink_ticks
 
 _IMPORTS = (
     (re.compile(r"\bfrom qpnso\b"), "from qpnso_other"),
@@ -58,7 +58,7 @@ def main() -> None:
     parser.add_argument("other", type=Path, nargs="?", help="another checkout (holding qpnso/ and models/)")
     parser.add_argument("-n", type=int, default=None, help="timed ticks per row (default 3000)")
     parser.add_argument("--strategies", default=None, help="comma-separated (default all)")
-    parser.add_argument("--moving", action="store_true", help="the tool on a 1.6 cm circle at 5 cm/s, not held")
+    parser.add_argument("--moving", action="store_true", help="the tool on a moving target (MovingTarget), not held")
     args = parser.parse_args()
     smoke = args.other is None
     strategies = (args.strategies or ("qp" if smoke else ",".join(qpnso.STRATEGIES))).split(",")
@@ -78,7 +78,7 @@ def main() -> None:
             ctrl.reset(q0)
             runs[f"{name} {tag}"] = (moving_tool_ticks if args.moving else held_tool_ticks)(ctrl, q0)
     robot = qpnso.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.1])
-    pink = pink_ticks(robot, robot.sample_configuration())
+    pink = pink_ticks(robot, robot.sample_configuration(), MovingTarget() if args.moving else None)
     if pink is not None:
         runs["Pink solve_ik"] = pink[0]
     times = {name: 1e6 * t for name, t in interleaved(runs, n, chunk=250).items()}

@@ -313,21 +313,58 @@ def test_tool_motion_beyond_the_joint_speeds_is_flagged(lwr_qp: Controller) -> N
     assert (robot.jacobian(q0) @ cmd.dq)[0] > 0.1  # still moving the tool the right way
 
 
-def test_the_moving_benchmark_moves_the_tool_on_its_circle() -> None:
-    """``moving_tool_ticks`` (the moving rows of examples/compare_versions.py): after a whole period the
-    tool point is back where it started, and after half a period it is one diameter, speed·period/π, away
-    (Pinocchio's forward kinematics of the commanded joints)."""
-    from qpnso.lab.benchmark import moving_tool_ticks
+def test_the_moving_benchmark_moves_the_tool_on_its_target() -> None:
+    """``moving_tool_ticks`` (the moving rows of ``qpnso bench tick``): the controller's reference follows
+    :class:`MovingTarget`'s pose (the integral of its twist): after half a period the tool point is one
+    diameter away and turned by the target's rotation, after a whole period back where it started; the
+    commanded joints put the tool there (Pinocchio's forward kinematics)."""
+    from qpnso.lab.benchmark import MovingTarget, moving_tool_ticks
 
     robot = qpnso.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.1])
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     q0 = robot.sample_configuration()
     ctrl.reset(q0)
-    run = moving_tool_ticks(ctrl, q0, speed=0.05, period=0.4)
-    start = robot.tool_pose(q0).translation
+    target = MovingTarget(radius=0.05, frequency=2.5, rotation=0.2)  # a 0.4 s period
+    run = moving_tool_ticks(ctrl, q0, target)
+    start = robot.tool_pose(q0)
     times = run(200)
     assert times.shape == (200,) and np.all(times > 0)
-    half = ctrl.ref_position  # (the run's q is its own: the reference is where the twist has taken the tool)
-    assert np.linalg.norm(half - start) == pytest.approx(0.05 * 0.4 / np.pi, rel=1e-2)
+    p, R = target.pose(0.2, start.translation, start.rotation)
+    assert np.linalg.norm(p - start.translation) == pytest.approx(0.1, abs=1e-12)
+    slip = 1e-3 * 0.05 * 2 * np.pi * 2.5  # the reference sums the twist over ticks: within dt·|v| of the integral
+    np.testing.assert_allclose(ctrl.ref_position, p, atol=1.01 * slip)
     run(200)
-    np.testing.assert_allclose(ctrl.ref_position, start, atol=1e-4)
+    np.testing.assert_allclose(ctrl.ref_position, start.translation, atol=1.01 * slip)
+    ctrl.reset(q0)
+    q, target = q0.copy(), MovingTarget()  # the benchmark's own target, which the arm can follow
+    for k in range(100):  # the tool itself, ticking from q0 along the target
+        q = q + 1e-3 * ctrl.step(q, tool_twist=target.twist(k * 1e-3)).dq
+    p, R = target.pose(0.1, start.translation, start.rotation)
+    tool = robot.tool_pose(q)
+    np.testing.assert_allclose(tool.translation, p, atol=5e-4)
+    assert np.degrees(np.linalg.norm(pin.log3(R.T @ tool.rotation))) < 0.1
+
+
+def test_peer_rows_follow_the_same_target() -> None:
+    """The peers' rows of ``qpnso bench tick`` solve IK on the target qpnso's moving rows follow: Pink's tool
+    frame and mink's site (MuJoCo's model of the same URDF) start on qpnso's tool pose (two forward
+    kinematics), and after 200 calls on :class:`MovingTarget` each peer's tool is near the target's pose."""
+    from qpnso.lab.benchmark import MovingTarget, mink_ticks, pink_ticks
+
+    robot = qpnso.load_robot("lwr4p", tool_offset=[0.0, 0.0, 0.1])
+    q0 = robot.sample_configuration()
+    start = robot.tool_pose(q0)
+    target = MovingTarget()
+    p, _ = target.pose(0.2, start.translation, start.rotation)
+    made = 0
+    for make in (pink_ticks, mink_ticks):
+        peer = make(robot, q0, target)
+        if peer is None:
+            continue
+        made += 1
+        run, note = peer
+        np.testing.assert_allclose(run.tool_pose().homogeneous, start.homogeneous, atol=1e-9)
+        assert run(200).shape == (200,) and note
+        np.testing.assert_allclose(run.tool_pose().translation, p, atol=3e-3)
+    if made == 0:
+        pytest.skip("neither pin-pink nor mink is installed")

@@ -1,19 +1,22 @@
-"""Timing benchmarks: measured, never assumed.  Medians and p99 in microseconds.
+"""Timing benchmarks: measured, never assumed.  Medians and tails in microseconds.
 
 ``qpnso bench cost`` times ``cost.value`` + ``cost.gradient``;
-``qpnso bench tick`` times ``Controller.step`` for every strategy (and Pink's
-``solve_ik`` for reference when ``pin-pink`` is installed).  Compiled CasADi
-code is awaited before timing, so the figures are the steady state of a
-control loop.
+``qpnso bench tick`` times ``Controller.step`` for every strategy with the tool held and with the tool
+moving on :class:`MovingTarget` (a 5 cm circle at 0.5 Hz and a rotation, the twist changing every tick),
+beside Pink's ``solve_ik`` (``pin-pink``, ProxQP) and mink's (``mink``, DAQP) on the same targets when
+they are installed, all rows taken in turns (:func:`interleaved`).  Compiled CasADi code is awaited
+before timing, so the figures are the steady state of a control loop.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+import pinocchio as pin
 
 from qpnso.model.costs import CostModel, CostWeights
 from qpnso.model.robot import Robot
@@ -36,7 +39,11 @@ class Timing:
         return float(np.percentile(self.seconds, 99) * 1e6)
 
     def row(self) -> str:
-        return f"| {self.name} | {self.median_us:.1f} | {self.p99_us:.1f} | {len(self.seconds)} | {self.note} |"
+        p95, p99, p999 = np.percentile(self.seconds, [95, 99, 99.9]) * 1e6
+        return (
+            f"| {self.name} | {self.median_us:.1f} | {p95:.1f} | {p99:.1f} | {p999:.1f} | {len(self.seconds)} | "
+            f"{self.note} |"
+        )
 
 
 def time_calls(fn: Callable[[int], object], n: int, warmup: int = 50) -> np.ndarray:
@@ -52,7 +59,8 @@ def time_calls(fn: Callable[[int], object], n: int, warmup: int = 50) -> np.ndar
 
 
 def table(timings: list[Timing], title: str) -> str:
-    lines = [f"### {title}", "", "| what | median µs | p99 µs | calls | note |", "|---|---|---|---|---|"]
+    head = "| what | median µs | p95 µs | p99 µs | p99.9 µs | calls | note |"
+    lines = [f"### {title}", "", head, "|---|---|---|---|---|---|---|"]
     return "\n".join(lines + [t.row() for t in timings])
 
 
@@ -124,10 +132,35 @@ def held_tool_ticks(ctrl, q0: np.ndarray) -> Callable[[int], np.ndarray]:
     return ticks
 
 
-def moving_tool_ticks(ctrl, q0: np.ndarray, speed: float = 0.05, period: float = 2.0) -> Callable[[int], np.ndarray]:
-    """As :func:`held_tool_ticks`, with the tool moving: its point on a horizontal circle at ``speed`` m/s,
-    one turn per ``period`` s (radius ``speed·period/2π``: 1.6 cm at the defaults), so the continuity
-    interval is renewed every ``interval_period`` ticks (docs/method.md §5) as in hands-on use."""
+@dataclass(frozen=True)
+class MovingTarget:
+    """The tool's moving target, relative to its start pose (world frame): its point on a horizontal circle of
+    ``radius`` m at ``frequency`` Hz (starting at the start point, 0.157 m/s at the defaults) and its orientation
+    turning about the world's vertical by ``rotation·sin(2π f t)`` rad.  Its twist changes every tick."""
+
+    radius: float = 0.05
+    frequency: float = 0.5
+    rotation: float = 0.2
+
+    def twist(self, t: float) -> np.ndarray:
+        """The tool twist at ``t`` s: linear (m/s) then angular (rad/s) velocity, world frame."""
+        w = 2.0 * math.pi * self.frequency
+        v = self.radius * w
+        return np.array([-v * math.sin(w * t), v * math.cos(w * t), 0.0, 0.0, 0.0, self.rotation * w * math.cos(w * t)])
+
+    def pose(self, t: float, p0: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The target pose at ``t`` s from the start pose ``(p0, R0)`` (m, rotation matrix; world frame): the
+        integral of :meth:`twist` (the controller's reference follows it to the integration error of dt)."""
+        w = 2.0 * math.pi * self.frequency
+        p = p0 + self.radius * np.array([math.cos(w * t) - 1.0, math.sin(w * t), 0.0])
+        a = self.rotation * math.sin(w * t)
+        Rz = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        return p, Rz @ R0
+
+
+def moving_tool_ticks(ctrl, q0: np.ndarray, target: MovingTarget = MovingTarget()) -> Callable[[int], np.ndarray]:
+    """As :func:`held_tool_ticks`, with the tool following ``target``'s twist, so the continuity interval is
+    renewed every ``interval_period`` ticks (docs/method.md §5) as in hands-on use."""
     q = q0.copy()
     dt = ctrl.config.dt
     k_total = 0
@@ -136,8 +169,7 @@ def moving_tool_ticks(ctrl, q0: np.ndarray, speed: float = 0.05, period: float =
         nonlocal q, k_total
         times = np.empty(k)
         for i in range(k):
-            phase = 2.0 * np.pi * k_total * dt / period
-            twist = np.array([-speed * np.sin(phase), speed * np.cos(phase), 0.0, 0.0, 0.0, 0.0])
+            twist = target.twist(k_total * dt)
             t0 = time.perf_counter()
             cmd = ctrl.step(q, tool_twist=twist)
             times[i] = time.perf_counter() - t0
@@ -159,50 +191,128 @@ def interleaved(runs: dict[str, Callable[[int], np.ndarray]], n: int, chunk: int
 
 
 def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None = None) -> list[Timing]:
-    """``Controller.step`` per strategy, tool held, from the sample configuration, with Pink's
-    ``solve_ik`` for reference when installed; the rows are timed in turns (:func:`interleaved`)."""
+    """``Controller.step`` per strategy from the sample configuration, the tool held and the tool moving
+    (:class:`MovingTarget`), with Pink's and mink's ``solve_ik`` on the same held and moving targets when
+    installed; the rows are timed in turns (:func:`interleaved`)."""
     from qpnso.control.config import STRATEGIES, ControllerConfig
     from qpnso.control.controller import Controller
 
     strategies = strategies or STRATEGIES
     q0 = robot.sample_configuration()
     runs, notes = {}, {}
-    for name in strategies:
-        ctrl = Controller(robot, ControllerConfig(strategy=name))
-        ctrl.cost.wait_compiled()
-        ctrl.evaluate.wait_compiled()
-        ctrl.reset(q0)
-        row = f"step, strategy {name}"
-        runs[row] = held_tool_ticks(ctrl, q0)
-        notes[row] = "tool held"
-    pink = pink_ticks(robot, q0)
-    if pink is not None:
-        runs["Pink solve_ik (FrameTask + PostureTask)"], notes["Pink solve_ik (FrameTask + PostureTask)"] = pink
+    for motion, make in (("held", held_tool_ticks), ("moving", moving_tool_ticks)):
+        for name in strategies:
+            ctrl = Controller(robot, ControllerConfig(strategy=name))
+            ctrl.cost.wait_compiled()
+            ctrl.evaluate.wait_compiled()
+            ctrl.reset(q0)
+            row = f"step, strategy {name}, tool {motion}"
+            runs[row], notes[row] = make(ctrl, q0), f"tool {motion}"
+        for peer, make_peer in (("Pink", pink_ticks), ("mink", mink_ticks)):
+            made = make_peer(robot, q0, MovingTarget() if motion == "moving" else None)
+            if made is not None:
+                row = f"{peer} solve_ik (FrameTask + PostureTask), tool {motion}"
+                runs[row], notes[row] = made
     for run in runs.values():
         run(200)  # warm-up
     return [Timing(name, seconds, note=notes[name]) for name, seconds in interleaved(runs, n).items()]
 
 
-def pink_ticks(robot: Robot, q0: np.ndarray) -> tuple[Callable[[int], np.ndarray], str] | None:
-    """Pink's ``solve_ik`` with a FrameTask and a PostureTask (same robot, ProxQP), if installed:
-    a run advanced by ``k`` calls per call (seconds of each), and its note."""
+def pink_ticks(robot: Robot, q0: np.ndarray, target: MovingTarget | None = None) -> tuple[PeerRun, str] | None:
+    """Pink's ``solve_ik`` with a FrameTask on the tool frame and a PostureTask (same robot, ProxQP), if
+    installed, the frame's target held or, with ``target``, set each call to the pose the tool should reach
+    by the end of the tick: a run advanced by ``k`` calls per call (seconds of each), and its note."""
     try:
         import pink
         from pink.tasks import FrameTask, PostureTask
     except ImportError:
         return None
-    import pinocchio as pin
-
     config = pink.Configuration(robot.model, robot.model.createData(), q0)
     tool = robot.model.frames[robot.tool_frame_id].name
     frame_task = FrameTask(tool, position_cost=1.0, orientation_cost=1.0)
     posture = PostureTask(cost=1e-3)
-    frame_task.set_target(config.get_transform_frame_to_world(tool))
+    start = config.get_transform_frame_to_world(tool)
+    p0, R0 = start.translation.copy(), start.rotation.copy()
+    frame_task.set_target(start)
     posture.set_target(q0)
     tasks = [frame_task, posture]
+    dt = 1e-3
 
     def call(i: int) -> None:
-        v = pink.solve_ik(config, tasks, 1e-3, solver="proxqp")
-        config.integrate_inplace(v, 1e-3)
+        if target is not None:
+            p, R = target.pose((i + 1) * dt, p0, R0)
+            frame_task.set_target(pin.SE3(R, p))
+        v = pink.solve_ik(config, tasks, dt, solver="proxqp")
+        config.integrate_inplace(v, dt)
 
-    return (lambda k: time_calls(call, k, warmup=0)), f"pink, proxqp, pin {pin.__version__}"
+    def tool_pose() -> pin.SE3:
+        return config.get_transform_frame_to_world(tool)
+
+    return PeerRun(call, tool_pose), f"pink {_version('pin-pink')}, proxqp, pin {pin.__version__}"
+
+
+def mink_ticks(robot: Robot, q0: np.ndarray, target: MovingTarget | None = None) -> tuple[PeerRun, str] | None:
+    """mink's ``solve_ik`` (DAQP) with a FrameTask on a site at the tool point and a PostureTask, on MuJoCo's
+    model of the same URDF (fixed links fused; the site placed on the last joint's body as Pinocchio's tool
+    frame is), targets as :func:`pink_ticks`'; None when mink is not installed or MuJoCo cannot read the URDF."""
+    try:
+        import mink
+        import mujoco
+    except ImportError:
+        return None
+    try:
+        spec = mujoco.MjSpec.from_file(robot.source)
+    except Exception:  # (a URDF whose meshes MuJoCo cannot find: no mink row)
+        return None
+    frame = robot.model.frames[robot.tool_frame_id]
+    plain = spec.compile()
+    joint = robot.model.names[frame.parentJoint]
+    if joint not in [plain.joint(j).name for j in range(plain.njnt)]:
+        return None
+    body = spec.body(plain.body(plain.jnt_bodyid[plain.joint(joint).id]).name)
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, frame.placement.rotation.ravel())
+    body.add_site(name="qpnso_tool", pos=frame.placement.translation, quat=quat)
+    configuration = mink.Configuration(spec.compile())
+    configuration.update(q0)
+    frame_task = mink.FrameTask("qpnso_tool", "site", position_cost=1.0, orientation_cost=1.0)
+    posture = mink.PostureTask(configuration.model, cost=1e-3)
+    start = configuration.get_transform_frame_to_world("qpnso_tool", "site")
+    p0, R0 = start.translation().copy(), start.rotation().as_matrix().copy()
+    frame_task.set_target(start)
+    posture.set_target(q0)
+    tasks = [frame_task, posture]
+    dt = 1e-3
+
+    def call(i: int) -> None:
+        if target is not None:
+            p, R = target.pose((i + 1) * dt, p0, R0)
+            frame_task.set_target(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(R), p))
+        v = mink.solve_ik(configuration, tasks, dt, solver="daqp")
+        configuration.integrate_inplace(v, dt)
+
+    def tool_pose() -> pin.SE3:
+        pose = configuration.get_transform_frame_to_world("qpnso_tool", "site")
+        return pin.SE3(pose.rotation().as_matrix(), pose.translation())
+
+    return PeerRun(call, tool_pose), f"mink {_version('mink')}, daqp, mujoco {mujoco.__version__}"
+
+
+class PeerRun:
+    """A peer's IK loop as a benchmark run: ``run(k)`` makes ``k`` more calls ``call(i)`` (``i`` counting on
+    across runs) and returns the seconds of each; ``tool_pose()`` is where the peer's tool is (world frame)."""
+
+    def __init__(self, call: Callable[[int], None], tool_pose: Callable[[], "pin.SE3"]) -> None:
+        self._call, self.tool_pose, self._done = call, tool_pose, 0
+
+    def __call__(self, k: int) -> np.ndarray:
+        seconds = time_calls(lambda i: self._call(self._done + i), k, warmup=0)
+        self._done += k
+        return seconds
+
+
+def _version(package: str) -> str:
+    """An installed package's version."""
+    from importlib.metadata import version
+
+    return version(package)

@@ -525,3 +525,24 @@ def test_the_arm_angle_is_singular_inside_the_wrist_cone_or_with_a_straight_elbo
     for wrist_sin, offset, singular in ((0.015, 0.2, True), (0.5, 0.005, True), (0.5, 0.2, False), (0.03, 0.2, False)):
         s["wrist_sin"], s["elbow_offset"] = wrist_sin, offset
         assert bool(arm_angle_singular(s, P)) == singular, (wrist_sin, offset)  # (np.bool_ without the JIT)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_reference_advances_along_the_twist_as_pinocchios_exp3(seed: int) -> None:
+    """``advance_reference``: one tick of a twist moves the reference by ``dt·v`` and turns it by Pinocchio's
+    ``exp3(dt·ω)`` (world frame, to round-off), for angular speeds from 1e-6 to 100 rad/s; a zero twist
+    leaves it bit for bit."""
+    import pinocchio as pin
+
+    from qpnso.control.memory import advance_reference, new_memory
+
+    rng = np.random.default_rng(seed)
+    R0, p0 = pin.exp3(rng.standard_normal(3)), rng.standard_normal(3)
+    memory = new_memory(7, 0.0, 0.0, R0.copy(), p0.copy())
+    advance_reference(memory, np.zeros(6), 1e-3)
+    np.testing.assert_array_equal(memory[0]["ref_R"], R0)
+    np.testing.assert_array_equal(memory[0]["ref_p"], p0)
+    twist = rng.standard_normal(6) * 10.0 ** (seed - 4)
+    advance_reference(memory, twist, 1e-3)
+    np.testing.assert_allclose(memory[0]["ref_R"], pin.exp3(1e-3 * twist[3:]) @ R0, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(memory[0]["ref_p"], p0 + 1e-3 * twist[:3], rtol=0, atol=1e-15)

@@ -41,7 +41,7 @@ from qpnso.control.flags import (
     FLAG_QP_FAILED,
     PREDICTION_MISSED,
 )
-from qpnso.control.memory import interval_failed, new_memory, store_interval
+from qpnso.control.memory import advance_reference, interval_failed, new_memory, store_interval
 from qpnso.control.params import tick_params
 from qpnso.control.rows import RowKind
 from qpnso.control.rows.kind import row_counts
@@ -275,8 +275,8 @@ class Controller:
             )
         if self.qp.stats.active_set_fallbacks != fallbacks:
             cmd.status |= Status.QP_FALLBACK
-        if tool_twist is not None and tool_pose is None:
-            self._advance_reference(twist)
+        if tool_pose is None:
+            advance_reference(self.records.memory, twist, self.config.dt)  # (no twist: unchanged)
         self._dq_prev = cmd.dq
         self._twist_prev[:] = twist  # (a copy: the caller may reuse its array)
         self.step_count += 1
@@ -396,15 +396,6 @@ class Controller:
             return np.array(self.robot.gravity(qv), dtype=float)
         except Exception:
             return np.zeros(self.robot.nq)
-
-    def _advance_reference(self, twist: np.ndarray) -> None:
-        """The tool's reference moved along ``twist`` (m/s, rad/s; world frame) for one tick."""
-        if not np.any(twist):
-            return
-        dt = self.config.dt
-        R, p = self._ref
-        p += dt * twist[:3]
-        R[:] = pin.exp3(dt * twist[3:]) @ R
 
     def _update_interval(self, q: np.ndarray, state: np.ndarray) -> None:
         """Recompute the continuity interval [E 9] at ``q`` into the memory; when it cannot be, the previous

@@ -1,9 +1,9 @@
 """What the control tick remembers across ticks, as one named record (docs/method.md §5–7), and the elbow
 kernels that read and advance it: the arm angle unwrapped along the run, the cached continuity interval
 [E 9] with its age and the tool pose it was computed at (:func:`elbow_advance`), ROM_t [E 10], [E 11] and
-the stiffness K(ns) [E 6] (:func:`elbow_bounds`); also the ROM centre, the tool's reference pose and the
-``qp`` strategy's filtered cost step.  :func:`new_memory` is a run's start: ``Controller.reset`` makes a
-new one, so nothing survives a reset."""
+the stiffness K(ns) [E 6] (:func:`elbow_bounds`); also the ROM centre, the tool's reference pose (advanced
+along the tool twist by :func:`advance_reference`) and the ``qp`` strategy's filtered cost step.
+:func:`new_memory` is a run's start: ``Controller.reset`` makes a new one, so nothing survives a reset."""
 
 from __future__ import annotations
 
@@ -130,3 +130,30 @@ def elbow_bounds(m, P):
 def elbow_stiffness(ns, m, P):
     """K(ns) [E 6] (N·m/rad) about the ROM centre (:func:`qpnso.elbow.rom.sigmoid_stiffness`)."""
     return sigmoid_stiffness(ns, m.ns0, P.stiffness_min, P.stiffness_max, P.stiffness_slope, P.stiffness_inflection)
+
+
+@njit(cache=True)
+def advance_reference(memory, twist, dt):
+    """The tool's reference pose moved along ``twist`` (m/s then rad/s, world frame) for one tick of ``dt`` s:
+    ``p ← p + dt·v``, ``R ← exp(dt·ω) R`` (Rodrigues' formula, ``1 − cos θ`` as ``2 sin²(θ/2)``; a zero twist
+    changes nothing)."""
+    m = memory[0]
+    R, p = m.ref_R, m.ref_p
+    for i in range(3):
+        p[i] += dt * twist[i]
+    wx, wy, wz = dt * twist[3], dt * twist[4], dt * twist[5]
+    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if theta == 0.0:
+        return
+    a = math.sin(theta) / theta
+    h = math.sin(0.5 * theta) / theta
+    b = 2.0 * h * h
+    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    E = np.eye(3)
+    for i in range(3):
+        for j in range(3):
+            E[i, j] += a * K[i, j] + b * (K[i, 0] * K[0, j] + K[i, 1] * K[1, j] + K[i, 2] * K[2, j])
+    old = R.copy()
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = E[i, 0] * old[0, j] + E[i, 1] * old[1, j] + E[i, 2] * old[2, j]

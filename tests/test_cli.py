@@ -187,13 +187,18 @@ def test_plot_rejects_a_foreign_file(tmp_path, capsys) -> None:
 
 
 @pytest.mark.parametrize("what", ["cost", "interval", "tick"])
-def test_bench_prints_median_and_p99(capsys, what) -> None:
+def test_bench_prints_median_and_tails(capsys, what) -> None:
+    """Every row has a median, p95, p99 and p99.9 in order; ``tick`` times each strategy held and moving."""
     argv = ["bench", what, "-n", "20"] + (["--strategies", "qp,damped"] if what == "tick" else [])
     assert main(argv) == 0
     out = capsys.readouterr().out
-    assert "| median µs | p99 µs |" in out
+    assert "| median µs | p95 µs | p99 µs | p99.9 µs |" in out
     rows = [line for line in out.splitlines() if line.startswith("| ") and "µs" not in line and "---" not in line]
-    assert rows and all(float(r.split("|")[2]) > 0 for r in rows)
+    values = [[float(x) for x in r.split("|")[2:6]] for r in rows]
+    assert rows and all(0 < a <= b <= c <= d for a, b, c, d in values)
+    if what == "tick":
+        for strategy in ("qp", "damped"):
+            assert sum(f"strategy {strategy}, tool " in r for r in rows) == 2
 
 
 # ------------------------------------------------------------------- issue 13, items 7 and 12

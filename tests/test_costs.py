@@ -214,3 +214,18 @@ def test_unnormalised_costs_have_unit_scales(lwr) -> None:
 
     cost = qpnso.CostModel(lwr, normalize=False, compile="off")
     assert cost.scales == dict.fromkeys(TERMS, 1.0)
+
+
+def test_felt_mass_and_friction_of_a_run_at_once(cost, lwr) -> None:
+    """``CostModel.felt`` (a whole run's felt quantities in mapped chunks, padded) against one configuration at
+    a time through other functions: 1/λ_min of ``lambda_inv``'s Λv⁻¹ and √ of ``terms``' c_f; 300 random
+    configurations (a partial last chunk), none, and one."""
+    rng = np.random.default_rng(7)
+    qs = np.array([lwr.random_q(rng, margin=0.05) for _ in range(300)])
+    mass, force = cost.felt(qs)
+    want_mass = [1.0 / np.linalg.eigvalsh(cost.lambda_inv(q)[0])[0] for q in qs]
+    want_force = [np.sqrt(cost.terms(q)["friction_force"]) for q in qs]
+    np.testing.assert_allclose(mass, want_mass, rtol=1e-12)
+    np.testing.assert_allclose(force, want_force, rtol=1e-12)
+    assert [a.shape for a in cost.felt(np.zeros((0, 7)))] == [(0,), (0,)]
+    assert cost.principal_mass(qs[5]) == mass[5] and cost.friction_force_magnitude(qs[5]) == force[5]

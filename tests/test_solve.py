@@ -42,6 +42,17 @@ def test_solve_tracks_the_path_and_records_every_key(lwr, short_guidance) -> Non
     assert result.summary["tool_position_error_max_m"] < 1e-5
     assert np.all(a["q"] >= lwr.q_min) and np.all(a["q"] <= lwr.q_max)
     assert result.summary["mass_mean_kg"] > 0 and result.summary["friction_force_mean_N"] > 0
+    # what the recorder computes for the whole run at its end, against Pinocchio and the cost, tick by tick
+    poses = [lwr.tool_pose(q) for q in a["q"]]
+    np.testing.assert_allclose(a["tool_position"], [x.translation for x in poses], atol=1e-12)
+    rot = [np.linalg.norm(pin.log3(short_guidance.sample(t)[1] @ x.rotation.T)) for t, x in zip(a["t"], poses)]
+    np.testing.assert_allclose(a["tool_rotation_error"], rot, atol=1e-12)
+    np.testing.assert_allclose(a["tool_position_error"], np.linalg.norm(fk - ref, axis=1), atol=1e-12)
+    cost = qpnso.CostModel(lwr)
+    some = a["q"][::97]
+    mass = [1.0 / np.linalg.eigvalsh(cost.lambda_inv(q)[0])[0] for q in some]
+    np.testing.assert_allclose(a["mass"][::97], mass, rtol=1e-12)
+    np.testing.assert_allclose(a["friction_force"][::97], [np.sqrt(cost.terms(q)["friction_force"]) for q in some])
 
 
 def test_solve_result_file_is_written_atomically(lwr, short_guidance, tmp_path) -> None:
@@ -218,3 +229,18 @@ def test_results_honour_the_umask(tmp_path) -> None:
     RunResult({"t": np.ones(2)}).save(npz)
     assert mode(npz) == 0o600
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.npz", "r.npz", "s.json"]
+
+
+def test_rotation_angle_is_the_norm_of_log3() -> None:
+    """``rotation_angle`` (the recorder's rotation error) against Pinocchio's ``log3`` on random rotations, tiny
+    ones (1e-9 rad) and ones near π; an empty stack."""
+    from qpnso.control.offline import rotation_angle
+
+    rng = np.random.default_rng(2)
+    axes = rng.normal(size=(60, 3))
+    axes /= np.linalg.norm(axes, axis=1)[:, None]
+    angles = np.concatenate([rng.uniform(0, np.pi, 20), np.full(20, 1e-9), np.pi - np.logspace(-8, -2, 20)])
+    R = np.array([pin.exp3(a * u) for a, u in zip(angles, axes)])
+    np.testing.assert_allclose(rotation_angle(R), [np.linalg.norm(pin.log3(r)) for r in R], atol=1e-9)
+    np.testing.assert_allclose(rotation_angle(R), angles, atol=1e-9)
+    assert rotation_angle(np.zeros((0, 3, 3))).shape == (0,)

@@ -358,3 +358,36 @@ def test_shipped_files(name):
     if name.startswith("guidance"):
         regenerated = guidance_path(pose, size=0.08, speed=0.05, dt=0.01)
         np.testing.assert_allclose(traj.position, regenerated.position, atol=1e-9)
+
+
+def test_samples_are_the_spline_and_the_slerp() -> None:
+    """``Trajectory.samples`` (``sample`` is one of them) against SciPy's own cubic spline (position and its
+    derivative) and slerp (rotation) at random times inside, at the samples themselves, and clamped outside:
+    the end poses with zero velocities, the first interval's velocities at ``t_0`` exactly."""
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Slerp
+
+    traj = random_traj(12, seed=3)
+    rng = np.random.default_rng(3)
+    inside = np.concatenate([rng.uniform(traj.t[0], traj.t[-1], 500), traj.t[1:]])
+    p, R, v, w = traj.samples(inside)
+    spline = CubicSpline(traj.t, traj.position, axis=0)
+    np.testing.assert_allclose(p, spline(inside), atol=1e-12)
+    np.testing.assert_allclose(v, spline(inside, 1), atol=1e-10)
+    slerp = Slerp(traj.t, Rotation.from_quat(traj.quaternion))
+    np.testing.assert_allclose(R, slerp(inside).as_matrix(), atol=1e-12)
+    k = np.clip(np.searchsorted(traj.t, inside, side="right") - 1, 0, len(traj) - 2)
+    dR = (Rotation.from_matrix(traj.rotation[k + 1]) * Rotation.from_matrix(traj.rotation[k]).inv()).as_rotvec()
+    np.testing.assert_allclose(w, dR / np.diff(traj.t)[k][:, None], atol=1e-10)  # world frame, per interval
+    outside = np.array([traj.t[0] - 1.0, traj.t[-1] + 1.0, traj.t[0]])
+    p, R, v, w = traj.samples(outside)
+    np.testing.assert_array_equal(p[:2], traj.position[[0, -1]])
+    np.testing.assert_array_equal(R[:2], traj.rotation[[0, -1]])
+    np.testing.assert_array_equal(v[:2], 0.0)
+    np.testing.assert_array_equal(w[:2], 0.0)
+    np.testing.assert_allclose(v[2], spline(traj.t[0], 1), atol=1e-10)
+    for t, sample in zip(outside, zip(p, R, v, w)):
+        for got, want in zip(traj.sample(t), sample):
+            np.testing.assert_array_equal(got, want)
+    with pytest.raises(TrajectoryError, match="finite"):
+        traj.samples([0.0, np.nan])

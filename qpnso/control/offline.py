@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
+from scipy.spatial.transform import Rotation
 
 from qpnso.control.config import ControllerConfig
 from qpnso.control.controller import Controller
@@ -49,6 +50,9 @@ RESULT_KEYS = (
     "tick_time",
     "solve_time",
 )
+
+_COMPUTED_AFTER = ("mass", "friction_force", "tool_position_error", "tool_rotation_error")
+"""What :class:`Recorder` computes for a whole run at its end."""
 
 
 @dataclass
@@ -228,23 +232,29 @@ def _interval_room(robot: Robot, q: np.ndarray, continuity_interval) -> float:
 
 
 class Recorder:
-    """Collects the per-tick arrays of a run (:data:`RESULT_KEYS`, plus extras).
-
-    ``mass`` is the largest principal mass felt at the tool (kg) and
-    ``friction_force`` the potential friction force magnitude (N, √c_f), both
-    at the measured ``q``; computing them costs about as much as a tick, so a
-    run may record them every ``feel_every`` ticks (NaN in between).
+    """Collects the per-tick arrays of a run (:data:`RESULT_KEYS`, plus extras): what each tick returned and
+    the tool's and the reference's poses, copied, nothing computed per tick.  :meth:`result` computes the rest
+    for the whole run at once: ``mass``, the largest principal mass felt at the tool (kg), and
+    ``friction_force``, the potential friction force magnitude (N, √c_f), both at the measured ``q``
+    (:meth:`~qpnso.model.costs.CostModel.felt`, every ``feel_every``-th tick, NaN in between), and the tool's
+    position and rotation errors.
     """
 
     def __init__(self, ctrl: Controller, feel_every: int = 1) -> None:
         self.ctrl = ctrl
         self.feel_every = max(1, int(feel_every))
-        self.rec: dict[str, list] = {k: [] for k in RESULT_KEYS}
+        ctrl.cost.felt_function()  # (made now: a background compile of it runs during the run)
+        self.rec: dict[str, list] = {k: [] for k in _TICK_KEYS}
         self.messages: list[str] = []
 
-    def add(self, t: float, q: np.ndarray, cmd, tool: pin.SE3, ref: pin.SE3, **extra: np.ndarray) -> None:
-        rec, cost = self.rec, self.ctrl.cost
-        feel = len(rec["t"]) % self.feel_every == 0
+    def add(
+        self, t: float, q: np.ndarray, cmd, tool: pin.SE3 | tuple, ref: pin.SE3 | tuple, **extra: np.ndarray
+    ) -> None:
+        """Tick ``t`` (s) at joints ``q`` (rad) with its command; ``tool`` and ``ref`` the tool's and the
+        reference's poses (world frame), each a ``pinocchio.SE3`` or ``(rotation, position)``."""
+        rec = self.rec
+        tool_R, tool_p = (tool.rotation, tool.translation) if isinstance(tool, pin.SE3) else tool
+        ref_R, ref_p = (ref.rotation, ref.translation) if isinstance(ref, pin.SE3) else ref
         rec["t"].append(t)
         rec["q"].append(q.copy())
         rec["dq"].append(cmd.dq)
@@ -254,14 +264,12 @@ class Recorder:
         rec["interval_lo"].append(cmd.interval[0])
         rec["interval_hi"].append(cmd.interval[1])
         rec["cost"].append(cmd.cost)
-        rec["mass"].append(cost.principal_mass(q) if feel else np.nan)
-        rec["friction_force"].append(cost.friction_force_magnitude(q) if feel else np.nan)
         rec["status"].append(int(cmd.status.value))
         rec["stiffness"].append(cmd.stiffness)
-        rec["tool_position"].append(tool.translation.copy())
-        rec["ref_position"].append(ref.translation.copy())
-        rec["tool_position_error"].append(float(np.linalg.norm(ref.translation - tool.translation)))
-        rec["tool_rotation_error"].append(float(np.linalg.norm(pin.log3(ref.rotation @ tool.rotation.T))))
+        rec["tool_rotation"].append(tool_R.copy())
+        rec["tool_position"].append(tool_p.copy())
+        rec["ref_rotation"].append(ref_R.copy())
+        rec["ref_position"].append(ref_p.copy())
         rec["tick_time"].append(cmd.tick_time)
         rec["solve_time"].append(cmd.solve_time)
         for key, value in extra.items():
@@ -275,10 +283,29 @@ class Recorder:
         from qpnso.lab.metrics import summarize_run
 
         arrays = {k: np.asarray(v) for k, v in self.rec.items()}
+        q = arrays["q"].reshape(-1, self.ctrl.robot.nq)
+        felt = np.arange(q.shape[0]) % self.feel_every == 0
+        arrays["mass"], arrays["friction_force"] = np.full(q.shape[0], np.nan), np.full(q.shape[0], np.nan)
+        arrays["mass"][felt], arrays["friction_force"][felt] = self.ctrl.cost.felt(q[felt])
+        tool_R, ref_R = arrays.pop("tool_rotation"), arrays.pop("ref_rotation")
+        arrays["tool_position_error"] = np.linalg.norm(arrays["ref_position"] - arrays["tool_position"], axis=-1)
+        arrays["tool_rotation_error"] = rotation_angle(ref_R @ np.swapaxes(tool_R, -1, -2))
         flags = {f.name: f.value for f in Status if f.value and f.name is not None}  # (members are named)
         summary = summarize_run(arrays, flags, dt=self.ctrl.config.dt)
         summary.update(feel_summary(arrays))
         return RunResult(arrays, summary, self.messages)
+
+
+_TICK_KEYS = tuple(k for k in RESULT_KEYS if k not in _COMPUTED_AFTER) + ("tool_rotation", "ref_rotation")
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """The angle (rad, in [0, π]) of each rotation matrix of ``R`` (..., 3, 3): ``‖log₃ R‖``, from the
+    quaternion (SciPy), accurate near 0 and π alike.  An empty stack gives an empty array."""
+    R = np.asarray(R, dtype=float)
+    if R.size == 0:
+        return np.zeros(R.shape[:-2])
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).magnitude().reshape(R.shape[:-2])
 
 
 TOOL_TOLERANCE_M = 1e-3
@@ -325,12 +352,15 @@ def solve_trajectory(
     ctrl.reset(q)
     recorder = Recorder(ctrl)
     n = int(np.floor(traj.duration / cfg.dt + 1e-9)) + 1
+    times = traj.t[0] + np.arange(n) * cfg.dt
+    positions, rotations, v, w = traj.samples(times)  # (the whole run's reference at once)
+    twists = np.concatenate([v, w], axis=1)
+    state = ctrl.records.state
+    tool = (state["R"][0], state["p"][0])  # views: the tool's pose at the tick's q, as the tick evaluated it
     for k in range(n):
-        t = traj.t[0] + k * cfg.dt
-        p_ref, r_ref, v, w = traj.sample(t)
-        ref = pin.SE3(r_ref, p_ref)
-        cmd = ctrl.step(q, tool_twist=np.concatenate([v, w]), tool_pose=ref)
-        recorder.add(t, q, cmd, robot.tool_pose(q), ref)
+        ref = pin.SE3(rotations[k], positions[k])
+        cmd = ctrl.step(q, tool_twist=twists[k], tool_pose=ref)
+        recorder.add(float(times[k]), q, cmd, tool, (rotations[k], positions[k]))
         q = q + cfg.dt * cmd.dq
         if progress is not None:
             progress(k + 1, n)

@@ -38,7 +38,6 @@ import csv
 import math
 import os
 import tempfile
-from bisect import bisect_right
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -79,7 +78,6 @@ class Trajectory:
     _omega: np.ndarray = field(init=False, repr=False)
     _rotvec: np.ndarray = field(init=False, repr=False)
     _coef: np.ndarray = field(init=False, repr=False)
-    _tlist: list = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         t, p, q = _validated(self.t, self.position, self.quaternion, "row")
@@ -99,7 +97,6 @@ class Trajectory:
         ):
             value.flags.writeable = False
             object.__setattr__(self, name, value)
-        object.__setattr__(self, "_tlist", t.tolist())
 
     def __len__(self) -> int:
         return len(self.t)
@@ -116,29 +113,37 @@ class Trajectory:
 
     def sample(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(position (3,) m, rotation (3, 3), linear velocity (3,) m/s,
-        angular velocity (3,) rad/s)`` at time ``t`` (s), all in the world frame.
+        angular velocity (3,) rad/s)`` at time ``t`` (s), all in the world frame: :meth:`samples` at one time."""
+        p, r, v, w = self.samples(np.array([float(t)]))
+        return p[0], r[0], v[0], w[0]
 
-        Cubic-spline position with its exact derivative; slerp orientation with
-        the world-frame angular velocity of the current interval; clamped with
-        zero velocities outside the time range (see the module docstring).
+    def samples(self, t: object) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The poses and velocities at the times ``t`` (N,) s, all at once: positions (N, 3) m, rotations
+        (N, 3, 3), linear velocities (N, 3) m/s and angular velocities (N, 3) rad/s, world frame.
+
+        Cubic-spline position with its exact derivative; slerp orientation (``R_k exp(s·rotvec_k)``) with
+        the world-frame angular velocity of the current interval; clamped with zero velocities outside the
+        time range (see the module docstring; at ``t_0`` itself the first interval's velocities).
         """
-        t = float(t)
-        if not math.isfinite(t):
-            raise TrajectoryError(f"sample time must be finite, got {t}")
-        if t <= self._tlist[0] or t > self._tlist[-1]:
-            k = 0 if t <= self._tlist[0] else len(self._tlist) - 1
-            moving = t == self._tlist[0]
-            v = self._coef[2, 0].copy() if moving else np.zeros(3)
-            w = self._omega[0].copy() if moving else np.zeros(3)
-            return self.position[k].copy(), self._rotation[k].copy(), v, w
-        k = min(bisect_right(self._tlist, t) - 1, len(self._tlist) - 2)
-        dx = t - self._tlist[k]
-        c = self._coef[:, k]
+        ts = np.asarray(t, dtype=float).reshape(-1)
+        if not np.all(np.isfinite(ts)):
+            raise TrajectoryError(f"sample times must be finite, got {ts[~np.isfinite(ts)][0]}")
+        T = self.t
+        k = np.clip(np.searchsorted(T, ts, side="right") - 1, 0, len(T) - 2)
+        dx = (ts - T[k])[:, None]
+        c = self._coef[:, k]  # (4, N, 3)
         p = ((c[0] * dx + c[1]) * dx + c[2]) * dx + c[3]
         v = (3.0 * c[0] * dx + 2.0 * c[1]) * dx + c[2]
-        s = dx / (self._tlist[k + 1] - self._tlist[k])
-        r = self._rotation[k] @ pin.exp3(s * self._rotvec[k])
-        return p, r, v, self._omega[k].copy()
+        s = (ts - T[k]) / (T[k + 1] - T[k])
+        r = self._rotation[k] @ Rotation.from_rotvec(s[:, None] * self._rotvec[k]).as_matrix()
+        w = self._omega[k].copy()
+        before, after = ts <= T[0], ts > T[-1]
+        for outside, end in ((before, 0), (after, len(T) - 1)):
+            if outside.any():
+                p[outside], r[outside], v[outside], w[outside] = self.position[end], self._rotation[end], 0.0, 0.0
+        start = ts == T[0]
+        v[start], w[start] = self._coef[2, 0], self._omega[0]
+        return p, r, v, w
 
     def window(self, t_start: float, t_end: float) -> "Trajectory":
         """The samples with ``t_start <= t <= t_end`` (s), as a new trajectory."""

@@ -32,6 +32,9 @@ from qpnso.settings import check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
 
 TERMS = ("mass", "inertia", "friction_force", "friction_torque")
+
+FELT_CHUNK = 256
+"""Configurations per call of :meth:`CostModel.felt_function` (a run is evaluated in chunks of this many)."""
 """Names of the four cost terms of [M 18], in order."""
 
 
@@ -141,6 +144,8 @@ class CostModel:
         self._lambda_fn = FastFunction(
             self.sym.function("lambda_inv", {"v": self.tool.lambda_inv_v, "w": self.tool.lambda_inv_w}), "off"
         )
+        self._mode = mode
+        self._felt_fn: FastFunction | None = None  # felt_function(), made when first asked for
         self.scales = self._resolve_scales(normalize, scales, n_scale_samples)
         total = self._total_expression()
         self.expression = total
@@ -241,7 +246,40 @@ class CostModel:
     # ---------------------------------------------- what a user understands
     def principal_mass(self, q: object) -> float:
         """Largest principal mass felt at the tool (kg): 1/λ_min(Λv⁻¹)."""
-        return float(1.0 / np.linalg.eigvalsh(self.lambda_inv(q)[0])[0])
+        return float(self.felt(np.reshape(self._q(q), (1, -1)))[0][0])
+
+    def felt(self, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What the hand feels at each configuration of ``qs`` (N, nq; rad): the largest principal mass
+        (kg, 1/λ_min(Λv⁻¹) [M 8]) and the potential friction force magnitude (N, √c_f [M 15]), each (N,); one
+        mapped CasADi evaluation each (a run's recorder evaluates its whole run at once)."""
+        qs = np.asarray(qs, dtype=float).reshape(-1, self.robot.nq)
+        n = qs.shape[0]
+        fn = self.felt_function()
+        lam, friction = np.empty((n, 3, 3)), np.empty(n)
+        for start in range(0, n, FELT_CHUNK):
+            chunk = qs[start : start + FELT_CHUNK]
+            k = chunk.shape[0]
+            if k < FELT_CHUNK:  # the last chunk padded with its last configuration
+                chunk = np.vstack([chunk, np.repeat(chunk[-1:], FELT_CHUNK - k, axis=0)])
+            lam_v, force = fn(chunk.T)
+            lam[start : start + k] = lam_v.T[:k].reshape(k, 3, 3)  # (Λv⁻¹ is symmetric: either order)
+            friction[start : start + k] = np.ravel(force)[:k]
+        return 1.0 / np.linalg.eigvalsh(lam)[:, 0], np.sqrt(friction)
+
+    def felt_function(self) -> FastFunction:
+        """``(nq × FELT_CHUNK configurations) → (Λv⁻¹ as 9 × FELT_CHUNK, c_f as 1 × FELT_CHUNK)``: one mapped
+        CasADi function, compiled like the tick's (``QPNSO_COMPILE``) when first asked for (a run's recorder
+        asks at its start, so that a background compile is done by its end)."""
+        if self._felt_fn is None:
+            one = self.sym.function(
+                "felt",
+                {
+                    "lambda_v": ca.reshape(self.tool.lambda_inv_v, 9, 1),
+                    "friction_force": self._term_exprs[TERMS.index("friction_force")],
+                },
+            )
+            self._felt_fn = FastFunction(one.map(FELT_CHUNK), self._mode)
+        return self._felt_fn
 
     def effective_mass(self, q: object, direction: object) -> float:
         """Effective mass (kg) along a world direction: 1/(uᵀΛv⁻¹u) [M 10]."""
@@ -250,7 +288,7 @@ class CostModel:
 
     def friction_force_magnitude(self, q: object) -> float:
         """Magnitude (N) of the stacked potential friction forces: √c_f [M 15]."""
-        return float(np.sqrt(self.terms(q)["friction_force"]))
+        return float(self.felt(np.reshape(self._q(q), (1, -1)))[1][0])
 
     def directional(
         self, directions: object, weights: object = None, exponent: int = 1, kind: str = "mass"

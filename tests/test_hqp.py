@@ -602,8 +602,8 @@ def test_warm_up_loads_every_cascade_kernel_and_forgets(tmp_path):
 import numpy as np
 from qpnso.qp import Level, backends, cascade_state, line, results, solver
 qp = solver.HierarchicalQP(7)
-kernels = (cascade_state.build_level, cascade_state.finish_level, cascade_state.build_least_norm,
-           cascade_state.check_least_norm, line.line_qp_arrays, line.checked_line_answer, line.task_line,
+kernels = (cascade_state.build_level, cascade_state.finish_level, cascade_state.check_level, line.line_qp_arrays,
+           line.checked_line_answer, line.task_line,
            line.least_norm_point, backends.qp_data_finite)
 assert all(len(k.signatures) == 0 for k in kernels)
 qp.warm_up()

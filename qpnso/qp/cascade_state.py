@@ -137,15 +137,13 @@ def state_arrays(S, buf):
 
 
 @njit(cache=True)
-def start_cascade(state, buf, lb, ub):
-    """The state before the first level: ``x = 0``, ``Z = I``, the bounds ``lb ≤ x ≤ ub`` (rad/s), no rows."""
-    S = state[0]
-    a = state_arrays(S, buf)
+def _start(S, a):
+    """The state before the first level: ``x = 0``, ``Z = I``, no rows (the bounds are written by
+    :meth:`CascadeState.start`, which marks the state to be started with ``depth = −1``)."""
     n = S.n
     a.x[:] = 0.0
     a.Z[: n * n] = np.eye(n).ravel()
     S.r, S.full, S.depth, S.p = n, 1, 0, 0
-    a.lb[:], a.ub[:] = lb, ub
 
 
 @njit(cache=True)
@@ -174,6 +172,8 @@ def build_level(state, buf, level, tol):
     of free directions it was built in."""
     S = state[0]
     a = state_arrays(S, buf)
+    if S.depth < 0:
+        _start(S, a)
     x, Z = _basis(S, a)
     p = S.p
     inherited = Inherited(a.lb, a.ub, a.C[:p], a.l[:p], a.u[:p])
@@ -266,15 +266,6 @@ def finish_level(state, buf, level, v, last, tol):
 
 
 @njit(cache=True)
-def least_norm_level(n):
-    """The level ``min ½‖x‖²`` (no task, no rows) whose optimum over the state's optimal set is the cascade's
-    unique answer."""
-    return LevelParts(
-        np.zeros((0, n)), np.zeros(0), np.eye(n), np.zeros(0), np.zeros((0, n)), np.zeros(0), np.zeros(0), 0, 0.0
-    )
-
-
-@njit(cache=True)
 def problem_levels_count(problem):
     """How many levels a tick's problem record has (1 or 2): level 2 when it has an objective or soft rows
     (:func:`qpnso.qp.problem.problem_levels`)."""
@@ -327,16 +318,17 @@ def finish_problem_level(state, buf, problem, k, v, last, tol):
     return finish_level(state, buf, problem_level(problem, k), v, last, tol)
 
 
-@njit(cache=True)
-def build_least_norm(state, buf, tol):
-    """:func:`build_level` on :func:`least_norm_level`."""
-    return build_level(state, buf, least_norm_level(state[0].n), tol)
+def least_norm_level(n: int) -> LevelParts:
+    """The level ``min ½‖x‖²`` (no task, no rows) whose optimum over the state's optimal set is the cascade's
+    unique answer, as the kernels take a caller's level (built once per ``n``)."""
+    level = _LEAST_NORM.get(n)
+    if level is None:
+        rows, vector = np.zeros((0, n)), np.zeros(0)
+        level = _LEAST_NORM[n] = LevelParts(rows, vector, np.eye(n), vector, rows, vector, vector, 0, 0.0)
+    return level
 
 
-@njit(cache=True)
-def check_least_norm(state, buf, v, tol):
-    """:func:`check_level` on :func:`least_norm_level`."""
-    return check_level(state, buf, least_norm_level(state[0].n), v, tol)
+_LEAST_NORM: dict[int, LevelParts] = {}
 
 
 class CascadeState:
@@ -355,10 +347,12 @@ class CascadeState:
         self._views: dict[tuple[int, int, int], QPArrays] = {}
         # views of the record's scalars (a field read of a record from Python costs 10x a view's)
         self.n_slack, self.worst, self.residual = record["n_slack"], record["worst"], record["residual"]
+        self._depth = record["depth"]
 
     def start(self, lb: np.ndarray, ub: np.ndarray) -> None:
-        """Before the first level, under ``lb ≤ x ≤ ub`` (rad/s)."""
-        start_cascade(self.record, self.buffer, lb, ub)
+        """Before the first level, under ``lb ≤ x ≤ ub`` (rad/s): the first :func:`build_level` starts the rest."""
+        self.arrays.lb[:], self.arrays.ub[:] = lb, ub
+        self._depth[0] = -1
 
     def qp(self, nv: int, m: int, box: int) -> QPArrays:
         """The level's QP (shape ``nv``, ``m``, ``box`` as :func:`build_level` returned it) as views of the
@@ -394,11 +388,11 @@ class CascadeState:
 
     @property
     def x(self) -> np.ndarray:
-        """The answer of the levels solved (rad/s), a copy."""
+        """The answer of the levels solved (rad/s), a copy (after :meth:`start`, valid from the first build)."""
         return self.arrays.x.copy()
 
     @property
     def Z(self) -> np.ndarray:
-        """The orthonormal basis (n, r) of the directions they leave free, a copy."""
+        """The orthonormal basis (n, r) of the directions they leave free, a copy (valid from the first build)."""
         n, r = self.arrays.x.shape[0], int(self.record[0]["r"])
         return self.arrays.Z[: n * r].reshape(n, r).copy()

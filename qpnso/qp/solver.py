@@ -29,12 +29,12 @@ from qpnso.qp.cascade_state import (
     LEVEL_UNIQUE,
     LEVEL_VIOLATED,
     CascadeState,
-    build_least_norm,
     build_level,
     build_problem_level,
-    check_least_norm,
+    check_level,
     finish_level,
     finish_problem_level,
+    least_norm_level,
     problem_levels_count,
 )
 from qpnso.qp.levels import Level, _LevelData, _trusted_level, _validate_bounds, _validate_level
@@ -212,10 +212,11 @@ class HierarchicalQP:
         """The least-norm joint velocity (rad/s) of the optimal set ``x + Z z`` that the cascade leaves
         (bounds and inherited rows kept): ``min ½‖x + Z z‖²``, strictly convex in ``z``, solved by DAQP
         (:func:`active_set_solve`: exact, finite).  The state's ``x`` itself if that fails (it is feasible)."""
-        nv, m, box, _, _ = build_least_norm(state.record, state.buffer, state.tol)
+        level = least_norm_level(self.n)
+        nv, m, box, _, _ = build_level(state.record, state.buffer, level, state.tol)
         raw = active_set_solve(state.qp(nv, m, box), self.settings.max_iter_active_set)
         ok = raw.status is LevelStatus.SOLVED and raw.v is not None
-        if ok and check_least_norm(state.record, state.buffer, raw.v, state.tol) == LEVEL_ADVANCED:
+        if ok and check_level(state.record, state.buffer, level, raw.v, state.tol) == LEVEL_ADVANCED:
             return state.xk.copy()
         return state.x
 

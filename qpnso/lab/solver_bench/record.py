@@ -58,8 +58,8 @@ def level_problems(
         if not res.ok:
             break
         parts = level_parts(level, n)
-        x_prev, Z = state.x, state.Z
         qp, _ = state.build(parts)
+        x_prev, Z = state.x, state.Z  # (what the level was built in: building changes neither)
         if qp.H.shape[0] and Z.shape[1]:
             out.append(_from_level_qp(qp, x_prev, Z, f"{sequence}/t{tick:05d}/L{k + 1}", sequence, k + 1, tick, res.x))
         if k + 1 < len(levels):

@@ -236,19 +236,17 @@ def pink_ticks(robot: Robot, q0: np.ndarray, target: MovingTarget | None = None)
     frame_task.set_target(start)
     posture.set_target(q0)
     tasks = [frame_task, posture]
-    dt = 1e-3
 
-    def call(i: int) -> None:
-        if target is not None:
-            p, R = target.pose((i + 1) * dt, p0, R0)
-            frame_task.set_target(pin.SE3(R, p))
-        v = pink.solve_ik(config, tasks, dt, solver="proxqp")
-        config.integrate_inplace(v, dt)
+    def step(dt: float) -> None:
+        config.integrate_inplace(pink.solve_ik(config, tasks, dt, solver="proxqp"), dt)
 
-    def tool_pose() -> pin.SE3:
-        return config.get_transform_frame_to_world(tool)
-
-    return PeerRun(call, tool_pose), f"pink {_version('pin-pink')}, proxqp, pin {pin.__version__}"
+    run = PeerRun(
+        step,
+        lambda R, p: frame_task.set_target(pin.SE3(R, p)),
+        (R0, p0, target),
+        lambda: config.get_transform_frame_to_world(tool),
+    )
+    return run, f"pink {_version('pin-pink')}, proxqp, pin {pin.__version__}"
 
 
 def mink_ticks(robot: Robot, q0: np.ndarray, target: MovingTarget | None = None) -> tuple[PeerRun, str] | None:
@@ -282,31 +280,47 @@ def mink_ticks(robot: Robot, q0: np.ndarray, target: MovingTarget | None = None)
     frame_task.set_target(start)
     posture.set_target(q0)
     tasks = [frame_task, posture]
-    dt = 1e-3
 
-    def call(i: int) -> None:
-        if target is not None:
-            p, R = target.pose((i + 1) * dt, p0, R0)
-            frame_task.set_target(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(R), p))
-        v = mink.solve_ik(configuration, tasks, dt, solver="daqp")
-        configuration.integrate_inplace(v, dt)
+    def step(dt: float) -> None:
+        configuration.integrate_inplace(mink.solve_ik(configuration, tasks, dt, solver="daqp"), dt)
 
     def tool_pose() -> pin.SE3:
         pose = configuration.get_transform_frame_to_world("qpnso_tool", "site")
         return pin.SE3(pose.rotation().as_matrix(), pose.translation())
 
-    return PeerRun(call, tool_pose), f"mink {_version('mink')}, daqp, mujoco {mujoco.__version__}"
+    def set_target(R: np.ndarray, p: np.ndarray) -> None:
+        frame_task.set_target(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(R), p))
+
+    run = PeerRun(step, set_target, (R0, p0, target), tool_pose)
+    return run, f"mink {_version('mink')}, daqp, mujoco {mujoco.__version__}"
 
 
 class PeerRun:
-    """A peer's IK loop as a benchmark run: ``run(k)`` makes ``k`` more calls ``call(i)`` (``i`` counting on
-    across runs) and returns the seconds of each; ``tool_pose()`` is where the peer's tool is (world frame)."""
+    """A peer's IK loop as a benchmark run: ``run(k)`` makes ``k`` more ticks of 1 ms and returns the seconds of
+    each; a tick sets the peer's frame target (``set_target(R, p)``) to ``target``'s pose at the tick's end from
+    the start pose ``(R0, p0)`` (``target`` None: the start pose is held), then ``step(dt)`` solves and integrates;
+    ``tool_pose()`` is where the peer's tool is (world frame)."""
 
-    def __init__(self, call: Callable[[int], None], tool_pose: Callable[[], "pin.SE3"]) -> None:
-        self._call, self.tool_pose, self._done = call, tool_pose, 0
+    def __init__(
+        self,
+        step: Callable[[float], None],
+        set_target: Callable[[np.ndarray, np.ndarray], None],
+        start: tuple[np.ndarray, np.ndarray, MovingTarget | None],
+        tool_pose: Callable[[], pin.SE3],
+    ) -> None:
+        self._step, self._set_target, self.tool_pose = step, set_target, tool_pose
+        self._R0, self._p0, self._target = start
+        self._done = 0
+
+    def _tick(self, i: int) -> None:
+        dt = 1e-3
+        if self._target is not None:
+            p, R = self._target.pose((i + 1) * dt, self._p0, self._R0)
+            self._set_target(R, p)
+        self._step(dt)
 
     def __call__(self, k: int) -> np.ndarray:
-        seconds = time_calls(lambda i: self._call(self._done + i), k, warmup=0)
+        seconds = time_calls(lambda i: self._tick(self._done + i), k, warmup=0)
         self._done += k
         return seconds
 

@@ -548,6 +548,7 @@ def test_the_reference_advances_along_the_twist_as_pinocchios_exp3(seed: int) ->
     np.testing.assert_allclose(memory[0]["ref_p"], p0 + 1e-3 * twist[:3], rtol=0, atol=1e-15)
 
 
+@pytest.mark.jit
 def test_every_controller_shares_the_record_types_of_the_first() -> None:
     """Two controllers' records (tick, problem, solution, memory) have the very same dtype objects, not only
     equal ones: Numba's dispatcher types an argument fast only for a dtype object it has seen (a second

@@ -1164,3 +1164,29 @@ def test_a_problem_record_and_its_levels_give_the_same_cascade(seed: int) -> Non
     np.testing.assert_allclose(solution[0]["x"], res.x if res.x is not None else 0.0, rtol=0, atol=1e-12)
     np.testing.assert_allclose(solution[0]["x1"], res.levels[0].x if res.levels[0].x is not None else 0.0, atol=1e-12)
     assert solution[0]["tool_residual"] == pytest.approx(res.levels[0].residual if res.levels[0].ok else -1.0)
+
+
+@pytest.mark.parametrize(
+    "answer, words",
+    [
+        ("nan", "non-finite or mis-shaped solution"),
+        ("short", "non-finite or mis-shaped solution"),
+        ("far", "violated by"),
+    ],
+)
+def test_the_general_cascade_refuses_a_bad_answer(monkeypatch, answer: str, words: str) -> None:
+    """A back end that says "solved" with a vector that is not finite, of the wrong length, or far outside the
+    bounds: the general cascade's check refuses it (level 1 ``INACCURATE``, the message says why), no answer."""
+    from qpnso.qp.backends import _Raw
+
+    levels, lb, ub = random_problem(0)
+    hqp = HierarchicalQP(N, settings=QPSettings(line_fast_path=False))
+
+    def bad(k, qp):
+        v = {"nan": np.full(qp.g.shape, np.nan), "short": np.zeros(qp.g.shape[0] - 1), "far": np.full(qp.g.shape, 1e3)}
+        return _Raw(v[answer], LevelStatus.SOLVED, 1, "test")
+
+    monkeypatch.setattr(hqp._backend, "solve_arrays", bad)
+    res = hqp.solve(levels, lb, ub)
+    assert not res.ok and res.failed_level == 0 and res.x is None
+    assert res.levels[0].status is LevelStatus.INACCURATE and words in res.levels[0].message

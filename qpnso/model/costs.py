@@ -35,6 +35,13 @@ TERMS = ("mass", "inertia", "friction_force", "friction_torque")
 
 FELT_CHUNK = 256
 """Configurations per call of :meth:`CostModel.felt_function` (a run is evaluated in chunks of this many)."""
+
+
+def principal_masses(lambda_inv_v: np.ndarray) -> np.ndarray:
+    """Largest principal mass (kg) of each Λv⁻¹ (…, 3, 3; 1/kg) [M 8]: 1/λ_min."""
+    return 1.0 / np.linalg.eigvalsh(lambda_inv_v)[..., 0]
+
+
 """Names of the four cost terms of [M 18], in order."""
 
 
@@ -245,13 +252,14 @@ class CostModel:
 
     # ---------------------------------------------- what a user understands
     def principal_mass(self, q: object) -> float:
-        """Largest principal mass felt at the tool (kg): 1/λ_min(Λv⁻¹)."""
-        return float(self.felt(np.reshape(self._q(q), (1, -1)))[0][0])
+        """Largest principal mass felt at the tool (kg): 1/λ_min(Λv⁻¹) (:func:`principal_masses`)."""
+        return float(principal_masses(self.lambda_inv(q)[0]))
 
     def felt(self, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """What the hand feels at each configuration of ``qs`` (N, nq; rad): the largest principal mass
         (kg, 1/λ_min(Λv⁻¹) [M 8]) and the potential friction force magnitude (N, √c_f [M 15]), each (N,); one
-        mapped CasADi evaluation each (a run's recorder evaluates its whole run at once)."""
+        mapped CasADi evaluation per chunk of :data:`FELT_CHUNK` (a run's recorder evaluates its whole run at once;
+        one configuration: :meth:`principal_mass`, :meth:`friction_force_magnitude`)."""
         qs = np.asarray(qs, dtype=float).reshape(-1, self.robot.nq)
         n = qs.shape[0]
         fn = self.felt_function()
@@ -264,7 +272,7 @@ class CostModel:
             lam_v, force = fn(chunk.T)
             lam[start : start + k] = lam_v.T[:k].reshape(k, 3, 3)  # (Λv⁻¹ is symmetric: either order)
             friction[start : start + k] = np.ravel(force)[:k]
-        return 1.0 / np.linalg.eigvalsh(lam)[:, 0], np.sqrt(friction)
+        return principal_masses(lam), np.sqrt(friction)
 
     def felt_function(self) -> FastFunction:
         """``(nq × FELT_CHUNK configurations) → (Λv⁻¹ as 9 × FELT_CHUNK, c_f as 1 × FELT_CHUNK)``: one mapped
@@ -288,7 +296,7 @@ class CostModel:
 
     def friction_force_magnitude(self, q: object) -> float:
         """Magnitude (N) of the stacked potential friction forces: √c_f [M 15]."""
-        return float(self.felt(np.reshape(self._q(q), (1, -1)))[1][0])
+        return float(np.sqrt(self.terms(q)["friction_force"]))
 
     def directional(
         self, directions: object, weights: object = None, exponent: int = 1, kind: str = "mass"

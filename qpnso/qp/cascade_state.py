@@ -154,10 +154,10 @@ def _basis(S, a):
 
 
 @njit(cache=True)
-def state_qp(S, a):
-    """The level's QP as :class:`~qpnso.qp.arrays.QPArrays` views (no box: empty box arrays)."""
-    nv, m = S.nv, S.m
-    nb = nv if S.box else 0
+def qp_views(a, nv, m, box):
+    """A level's QP of ``nv`` variables and ``m`` rows as :class:`~qpnso.qp.arrays.QPArrays` views of the
+    buffer's arrays ``a`` (compact row-major layouts; no ``box``: empty box arrays)."""
+    nb = nv if box else 0
     return QPArrays(
         a.H[: nv * nv].reshape((nv, nv)), a.g[:nv], a.A[: m * nv].reshape((m, nv)), a.lo[:m], a.hi[:m],
         a.box_l[:nb], a.box_u[:nb],
@@ -208,7 +208,7 @@ def check_level(state, buf, level, v, tol):
     a = state_arrays(S, buf)
     x_prev, Z = _basis(S, a)
     basis = Basis(x_prev, Z, Z.shape[1] == Z.shape[0], True)
-    x, worst, slack = level_answer(v, basis, state_qp(S, a), S.slack_start, S.n_slack)
+    x, worst, slack = level_answer(v, basis, qp_views(a, S.nv, S.m, S.box), S.slack_start, S.n_slack)
     a.xk[:], S.worst = x, worst
     a.slack[: slack.shape[0]] = slack
     if level.A.shape[0]:
@@ -356,15 +356,11 @@ class CascadeState:
 
     def qp(self, nv: int, m: int, box: int) -> QPArrays:
         """The level's QP (shape ``nv``, ``m``, ``box`` as :func:`build_level` returned it) as views of the
-        buffer (:func:`state_qp`'s layout)."""
+        buffer (:func:`qp_views`, made once per shape)."""
         key = (nv, m, int(box))
         views = self._views.get(key)
         if views is None:
-            a, nb = self.arrays, nv if box else 0
-            views = self._views[key] = QPArrays(
-                a.H[: nv * nv].reshape(nv, nv), a.g[:nv], a.A[: m * nv].reshape(m, nv), a.lo[:m], a.hi[:m],
-                a.box_l[:nb], a.box_u[:nb],
-            )  # fmt: skip
+            views = self._views[key] = QPArrays(*qp_views(self.arrays, nv, m, key[2]))
         return views
 
     def build(self, level: LevelParts) -> tuple[QPArrays, bool]:

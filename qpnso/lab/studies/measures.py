@@ -14,7 +14,7 @@ import casadi as ca
 import numpy as np
 
 from qpnso.model.codegen import FastFunction
-from qpnso.model.costs import CostModel, smooth_coulomb
+from qpnso.model.costs import CostModel, principal_masses, smooth_coulomb
 from qpnso.model.robot import Robot, load_robot
 
 
@@ -62,7 +62,7 @@ class Measures:
 
     def principal_mass(self) -> np.ndarray:
         """Largest principal mass (kg): 1/λ_min(Λv⁻¹)."""
-        return 1.0 / np.linalg.eigvalsh(self.lambda_inv_v)[:, 0]
+        return principal_masses(self.lambda_inv_v)
 
 
 class Workbench:

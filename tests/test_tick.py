@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import kernel_signatures, limit_params, reference_arm_angle
+from conftest import ALL_ROBOTS, kernel_signatures, limit_params, reference_arm_angle
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -180,7 +180,7 @@ def test_elbow_advance_unwraps_the_arm_angle_and_ages_the_interval(robot) -> Non
         assert M.elbow_advance(s, m, P)  # no interval known yet
         unwrapped.append(float(m["ns"]))
     np.testing.assert_allclose(unwrapped, path, atol=1e-12)
-    M.store_interval(memory, -1.0, 2.0, False, s["R"].copy(), s["p"].copy())
+    M.store_interval(m, -1.0, 2.0, False, s["R"].copy(), s["p"].copy())
     answers = []
     for k in range(24):
         if k == 12:
@@ -190,7 +190,7 @@ def test_elbow_advance_unwraps_the_arm_angle_and_ages_the_interval(robot) -> Non
     assert answers == [False] * 12 + [True] * 12
     assert m["iv_age"] == 24
     fresh = memory_at(0.0)  # none known and the first attempt failed: the next one only 10 ticks later
-    M.interval_failed(fresh)
+    M.interval_failed(fresh[0])
     assert [M.elbow_advance(s, fresh[0], P) for _ in range(12)] == [False] * 9 + [True] * 3
 
 
@@ -207,7 +207,7 @@ def test_elbow_bounds_are_the_shifted_interval_clipped_and_the_sigmoid(robot) ->
         ns = rng.uniform(lo, hi) + 2 * np.pi * turns
         ns0 = ns + rng.uniform(-1.5, 1.5)
         memory = M.new_memory(7, ns, ns0, np.eye(3), np.zeros(3))
-        M.store_interval(memory, lo, hi, full, np.eye(3), np.zeros(3))
+        M.store_interval(memory[0], lo, hi, full, np.eye(3), np.zeros(3))
         interval = (
             qpnso.Interval(ns - np.pi, ns + np.pi, True)
             if full
@@ -414,21 +414,42 @@ def test_a_bad_level_two_answer_holds_the_tool(robot, monkeypatch, answer, words
     np.testing.assert_allclose(robot.jacobian(Q0) @ a.dq, ctrl.records.problem[0]["b1"], atol=1e-12)
 
 
-def test_an_interval_that_cannot_be_renewed_is_flagged_stale(robot, monkeypatch) -> None:
+def test_an_interval_that_cannot_be_renewed_is_flagged_stale(robot) -> None:
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     ctrl.reset(Q0)
     twist = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.0])
     q = Q0.copy()
     for k in range(40):
-        if k == 5:  # from here on the interval cannot be computed: the last one stands, flagged
-
-            def singular(*args):
-                raise qpnso.SingularityError("test: no interval")
-
-            monkeypatch.setattr(qpnso.control.controller, "continuity_interval", singular)
+        if k == 5:  # from here on the interval cannot be computed (every pose out of the arm's reach in the
+            # tick's geometry): the last one stands, flagged
+            ctrl.records.params[0]["srs"]["upper_arm_m"] = 1e-3
         a = ctrl.step(q, tool_twist=twist)
         assert bool(a.status & Status.INTERVAL_STALE) == (k >= 10)  # renewed every 10 ticks while moving
         q = q + DT * a.dq
+
+
+@pytest.mark.parametrize("name", ALL_ROBOTS)
+def test_the_tick_renews_the_continuity_interval_of_the_library(robots, name: str) -> None:
+    """Renewed every tick while the tool moves: each tick's interval is ``continuity_interval`` at its ``q``
+    (S-R-S: the closed form in the tick's kernel, at the tick's own pose; Panda: numerical, through Python),
+    moved by whole turns to the run's unwrapping."""
+    robot = robots[name]
+    ctrl = Controller(robot, ControllerConfig(strategy="qp", interval_period=1))
+    rng = np.random.default_rng(2)
+    q = robot.sample_configuration()
+    ctrl.reset(q)
+    twist = np.array([0.03, -0.02, 0.01, 0.1, 0.0, -0.1])
+    renewed = 0
+    for k in range(30 if name == "panda" else 200):
+        cmd = ctrl.step(q, tool_twist=twist * np.sin(0.05 * k))
+        if not cmd.status & (Status.INTERVAL_STALE | Status.ELBOW_DROPPED):
+            iv = qpnso.continuity_interval(robot, q)
+            turns = round((cmd.arm_angle - qpnso.arm_angle(robot, q)) / (2 * np.pi))
+            expected = (iv.lo + 2 * np.pi * turns, iv.hi + 2 * np.pi * turns)
+            np.testing.assert_allclose(cmd.interval, expected, atol=1e-6 if name == "panda" else 1e-9)
+            renewed += 1
+        q = q + DT * cmd.dq + rng.normal(scale=1e-5, size=7)  # (a measured q: noisy)
+    assert renewed >= 25
 
 
 def test_nan_q_is_refused_before_anything_advances(robot) -> None:

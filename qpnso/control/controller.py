@@ -6,7 +6,7 @@ named records (:mod:`qpnso.control.tick`):
 
 1. the arm's state from one CasADi call (:mod:`qpnso.control.state`), read in place;
 2. :func:`~qpnso.control.tick.begin_tick`: the elbow — arm angle unwrapped along the run, continuity
-   interval (:mod:`qpnso.elbow.intervals`, renewed here when due), ROM_t with the safety margin, the
+   interval (:mod:`qpnso.elbow.closed_form`, renewed here when due), ROM_t with the safety margin, the
    stiffness sigmoid (:mod:`qpnso.control.memory`) — and level 1 ``J q̇ = v_tool + K_p e_pose − ½dt·J̇q̇``
    with the joint position/velocity bounds, into the problem record (:mod:`qpnso.qp.problem`);
 3. the strategy's level 2 (:mod:`qpnso.control.strategies`), then the hierarchical QP
@@ -398,16 +398,18 @@ class Controller:
             return np.zeros(self.robot.nq)
 
     def _update_interval(self, q: np.ndarray, state: np.ndarray) -> None:
-        """Recompute the continuity interval [E 9] at ``q`` into the memory; when it cannot be, the previous
-        one (or, before any, the full circle) stands, marked stale (:func:`qpnso.control.memory.interval_failed`)."""
-        memory = self.records.memory
+        """Recompute the continuity interval [E 9] at ``q`` into the memory, for an arm without its closed form
+        (numerical: :func:`qpnso.elbow.intervals.numerical_interval`; the tick renews a closed-form one itself);
+        when it cannot be, the previous one (or, before any, the full circle) stands, marked stale
+        (:func:`qpnso.control.memory.interval_failed`)."""
+        m = self.records.memory[0]
         try:
             interval = continuity_interval(self.robot, q)
         except QpnsoError:
-            interval_failed(memory)
+            interval_failed(m)
             return
         s = state[0]
-        store_interval(memory, interval.lo, interval.hi, interval.full_circle, s["R"], s["p"])
+        store_interval(m, interval.lo, interval.hi, interval.full_circle, s["R"], s["p"])
 
     def __repr__(self) -> str:
         return f"Controller({self.robot.name!r}, strategy={self.config.strategy!r}, dt={self.config.dt})"

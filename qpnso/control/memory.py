@@ -1,6 +1,7 @@
 """What the control tick remembers across ticks, as one named record (docs/method.md §5–7), and the elbow
 kernels that read and advance it: the arm angle unwrapped along the run, the cached continuity interval
-[E 9] with its age and the tool pose it was computed at (:func:`elbow_advance`), ROM_t [E 10], [E 11] and
+[E 9] with its age and the tool pose it was computed at (:func:`elbow_advance`; renewed by
+:func:`renew_interval`), ROM_t [E 10], [E 11] and
 the stiffness K(ns) [E 6] (:func:`elbow_bounds`); also the ROM centre, the tool's reference pose (advanced
 along the tool twist by :func:`advance_reference`) and the ``qp`` strategy's filtered cost step.
 :func:`new_memory` is a run's start: ``Controller.reset`` makes a new one, so nothing survives a reset."""
@@ -12,6 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
+from qpnso.elbow.closed_form import SRS_OK, branch_signs, srs_interval
 from qpnso.elbow.rom import clipped_bounds, sigmoid_stiffness
 from qpnso.records import new_record
 
@@ -54,21 +56,39 @@ def new_memory(n: int, ns: float, ns0: float, R_ref: np.ndarray, p_ref: np.ndarr
     return memory
 
 
-def interval_failed(memory: np.ndarray) -> None:
-    """The continuity interval could not be computed: the one cached (or, before any, the full circle)
-    stands, marked stale, and the next attempt comes ``interval_period`` ticks later (a failing attempt
-    costs about 1 ms: one per tick stalled every tick near a singularity)."""
-    m = memory[0]
-    if m["iv_known"] != KNOWN_NONE:
-        m["iv_known"] = KNOWN_STALE
-    m["iv_age"] = 0.0
+@njit(cache=True)
+def interval_failed(m):
+    """The continuity interval could not be computed: the one cached in the memory record ``m`` (or, before
+    any, the full circle) stands, marked stale, and the next attempt comes ``interval_period`` ticks later (a
+    failing attempt costs about 1 ms in the numerical method: one per tick stalled every tick near a
+    singularity)."""
+    if m.iv_known != KNOWN_NONE:
+        m.iv_known = KNOWN_STALE
+    m.iv_age = 0.0
 
 
-def store_interval(memory: np.ndarray, lo: float, hi: float, full_circle: bool, R: np.ndarray, p: np.ndarray) -> None:
-    """Cache a continuity interval (rad) computed at the tool pose ``R``, ``p`` (m); its age restarts."""
-    m = memory[0]
-    m["iv_lo"], m["iv_hi"], m["iv_full"], m["iv_known"], m["iv_age"] = lo, hi, full_circle, KNOWN, 0.0
-    m["iv_R"], m["iv_p"] = R, p
+@njit(cache=True)
+def store_interval(m, lo, hi, full_circle, R, p):
+    """Cache a continuity interval (rad) computed at the tool pose ``R``, ``p`` (m) in the memory record ``m``;
+    its age restarts."""
+    m.iv_lo, m.iv_hi, m.iv_full, m.iv_known, m.iv_age = lo, hi, 1.0 if full_circle else 0.0, KNOWN, 0.0
+    m.iv_R[:] = R
+    m.iv_p[:] = p
+
+
+@njit(cache=True)
+def renew_interval(q, q_within, s, m, P):
+    """The continuity interval [E 9] renewed in the memory record ``m`` at the state ``s`` (its tool pose, the
+    memory's arm angle ``m.ns``) by the closed form (:func:`qpnso.elbow.closed_form.srs_interval`; the arm's
+    geometry ``P.srs``) — or, when ``q`` (rad) is not ``q_within`` its limits, its branch is undefined (joint
+    2, 4 or 6 exactly 0) or the closed form has none, marked failed (:func:`interval_failed`)."""
+    s2, s4, s6, defined = branch_signs(q)
+    if q_within and defined:
+        code, lo, hi, full, _, _, _ = srs_interval(P.srs, s.R, s.p, s2, s4, s6, m.ns, P.q_min, P.q_max)
+        if code == SRS_OK:
+            store_interval(m, lo, hi, full, s.R, s.p)
+            return
+    interval_failed(m)
 
 
 @njit(cache=True)

@@ -1,6 +1,7 @@
 """The control tick's constants as one named record (docs/method.md §7): what the tick's Numba kernels
 (:mod:`qpnso.control.tick`, :mod:`qpnso.control.memory`) read by field, built once per controller
-from its :class:`~qpnso.control.config.ControllerConfig` and robot (:func:`tick_params`)."""
+from its :class:`~qpnso.control.config.ControllerConfig` and robot (:func:`tick_params`), the S-R-S
+geometry of the continuity interval's closed form among them (:mod:`qpnso.elbow.closed_form`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,9 @@ import numpy as np
 
 from qpnso.control.rows import RowKind
 from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
+from qpnso.elbow.closed_form import srs_dtype
+from qpnso.elbow.intervals import closed_form_applies
+from qpnso.elbow.srs import srs_geometry
 from qpnso.model.robot import Robot
 from qpnso.records import new_record
 
@@ -48,6 +52,7 @@ _SCALARS = (
     "wrist_sin_min",  # the arm angle is singular with the wrist's sine to the vertical below this
     "elbow_offset_min",  # m: or the elbow this close to the shoulder–wrist line
     "interval_period",  # ticks between continuity-interval updates while the tool moves
+    "closed_form_interval",  # 1: the tick renews the continuity interval itself (srs, closed form); 0: Python does
     "tool_moved_tol",  # TOOL_MOVED_TOL
 )
 _VECTORS = (
@@ -70,7 +75,7 @@ def params_dtype(n: int, rows: int = 0) -> np.dtype:
         [(name, np.float64) for name in _SCALARS]
         + [(name, np.float64, n) for name in _VECTORS]
         + row_fields
-        + [("n_rows", np.int64)]
+        + [("n_rows", np.int64), ("srs", srs_dtype())]
     )
 
 
@@ -106,6 +111,7 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 
         wrist_sin_min=float(np.sin(np.radians(WRIST_CONE_DEG))),
         elbow_offset_min=ELBOW_OFFSET_MIN_M,
         interval_period=cfg.interval_period,
+        closed_form_interval=float(closed_form_applies(robot)),
         tool_moved_tol=TOOL_MOVED_TOL,
         q_check_lo=robot.q_min - Q_CHECK_WIDENING,
         q_check_hi=robot.q_max + Q_CHECK_WIDENING,
@@ -133,4 +139,6 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 
             field[: np.size(value)] = value  # (the rows first; the room after them unused)
         else:
             params[name] = value
+    if closed_form_applies(robot):
+        params["srs"] = srs_geometry(robot).record  # the arm's geometry for the tick's interval kernel
     return params

@@ -45,6 +45,7 @@ from qpnso.control.memory import (
     elbow_stiffness,
     interval_stale,
     memory_dtype,
+    renew_interval,
 )
 from qpnso.control.params import params_dtype
 from qpnso.control.rows.elbow import elbow_row
@@ -62,8 +63,8 @@ from the symmetric part by 1e-15 from here to π, measured against ``pinocchio.e
 TICK_READY, TICK_NOT_FINITE, TICK_Q_REFUSED, TICK_STATE_NOT_FINITE, TICK_NEED_INTERVAL = 0, 1, 2, 3, 4
 """Codes of :func:`begin_tick`: the problem is ready; ``q`` has a NaN or an infinite entry, or is beyond
 its limits by more than the accepted tolerance (nothing done: the caller raises); the state at ``q`` is not
-finite (nothing done: the caller stops the joints); the continuity interval is due (the memory advanced:
-the caller renews it, then calls :func:`begin_tick` again)."""
+finite (nothing done: the caller stops the joints); the continuity interval is due and has no closed form
+(the memory advanced: the caller renews it numerically, then calls :func:`begin_tick` again)."""
 
 TOOL_RESIDUAL_REPORTED = 1e-6
 """m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
@@ -286,8 +287,9 @@ def begin_tick(q, twist, tick):
 
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`, :data:`TICK_Q_REFUSED`; outside its limits but within
     the tolerance: ``Q_OUT_OF_LIMITS``), the state (:data:`TICK_STATE_NOT_FINITE`), the elbow — dropped when
-    the arm angle is singular (``ELBOW_DROPPED``), else advanced (:data:`TICK_NEED_INTERVAL` when the
-    continuity interval is due) and bounded (:func:`qpnso.control.memory.elbow_bounds`) — then level 1's
+    the arm angle is singular (``ELBOW_DROPPED``), else advanced — the continuity interval renewed when due
+    (:func:`qpnso.control.memory.renew_interval`; :data:`TICK_NEED_INTERVAL` for an arm without its closed
+    form) — and bounded (:func:`qpnso.control.memory.elbow_bounds`) — then level 1's
     error (:func:`pose_error`) and target (:func:`level1_target`) and the joint bounds
     (:func:`qpnso.control.rows.joint_limits.velocity_bounds`), and the rows of the controller's row kinds
     (:func:`qpnso.control.rows.kind.add_rows`).  Returns :data:`TICK_READY` or why not."""
@@ -309,8 +311,10 @@ def begin_tick(q, twist, tick):
         bits |= FLAG_ELBOW_DROPPED
     else:
         if m.advanced == 0.0 and elbow_advance(s, m, P):
-            m.advanced = 1.0
-            return TICK_NEED_INTERVAL
+            if P.closed_form_interval == 0.0:  # (no closed form: the caller renews it, numerically)
+                m.advanced = 1.0
+                return TICK_NEED_INTERVAL
+            renew_interval(q, limit == 0, s, m, P)
         m.advanced = 0.0
         r.dropped, r.ns = 0, m.ns
         r.rom_lo, r.rom_hi, empty, r.iv_lo, r.iv_hi, r.stiffness = elbow_bounds(m, P)

@@ -30,7 +30,6 @@ to about 1e-9 rad.  Excursions past a limit shorter than one step
 from __future__ import annotations
 
 import math
-from collections.abc import Container
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,15 +42,23 @@ from qpnso.elbow.arm_angle import (
     arm_angle_gradient,
     arm_angle_status,
 )
+from qpnso.elbow.closed_form import (
+    MAX_ROWS,
+    NO_END,
+    ROW_FIELDS,
+    crossings,
+    limit_rows,
+    singular_cut,
+    srs_interval,
+)
 from qpnso.elbow.srs import (
-    _CONST,
-    _KIND,
-    _TAN,
     SelfMotion,
     _branch_of,
-    _self_motion_rows,
     as_pose,
+    branch_floats,
     is_srs,
+    pose_arrays,
+    raise_unless_reached,
     self_motion,
     srs_geometry,
 )
@@ -59,8 +66,6 @@ from qpnso.errors import ModelError, SingularityError
 from qpnso.model.robot import Robot
 
 TWO_PI = 2.0 * math.pi
-SINGULAR_TOL = 1e-12
-"""A cosine-type joint whose ``cos θ`` reaches 1 − SINGULAR_TOL passes through 0 (singular cut)."""
 _MERGE_TOL = 1e-12
 _FEASIBLE_TOL = 1e-10
 _ALL_JOINTS = np.arange(7)
@@ -118,118 +123,37 @@ def wrap(angle):
 _BOUNDS = ("min", "max")
 
 
-@dataclass(frozen=True, slots=True)
-class _LimitRow:
-    """One joint limit that can bind, for one robot's limits and one branch.
-
-    ``is_max``: the bound is the upper one; ``cos_phi``/``sin_phi`` of φ = sign·θ_limit (tangent
-    type); ``cos_limit`` = cos θ_limit (cosine type); ``rate_sign``: dθ/dns has
-    the sign of ``rate_sign · d(residual)/dns`` at a genuine root; ``cause`` the
-    :class:`Cause` it ends an interval with.
-    """
-
-    joint: int
-    tangent: bool
-    cos_phi: float
-    sin_phi: float
-    cos_limit: float
-    rate_sign: float
-    is_max: bool
-    cause: Cause
-
-
-_TABLES: dict[tuple, tuple[_LimitRow, ...]] = {}
-
-
-def _row_table(sign: np.ndarray, q_min: np.ndarray, q_max: np.ndarray) -> tuple[_LimitRow, ...]:
-    """The limit rows (joint-major, min before max) that can bind, for joint signs ``sign`` (cached)."""
-    key = (q_min.tobytes(), q_max.tobytes(), sign.tobytes())
-    table = _TABLES.get(key)
-    if table is None:
-        rows = []
-        for k in _ALL_JOINTS[_KIND != _CONST].tolist():
-            s, tangent = float(sign[k]), bool(_KIND[k] == _TAN)
-            for bound, theta in enumerate((float(q_min[k]), float(q_max[k]))):
-                if tangent or theta * s >= 0:  # θ = s·acos(x) never reaches a bound of the other sign
-                    phi = s * theta
-                    rows.append(
-                        _LimitRow(
-                            k,
-                            tangent,
-                            math.cos(phi),
-                            math.sin(phi),
-                            math.cos(theta),
-                            s if tangent else -s,
-                            bound == 1,
-                            Cause("limit", k, _BOUNDS[bound]),
-                        )
-                    )
-        table = _TABLES[key] = tuple(rows)
-    return table
-
-
-def _crossings(row: _LimitRow, num: list[float], den: list[float], genuine_only: bool) -> list[tuple[float, float]]:
-    """Arm angles where the row's joint crosses its limit [E 7], with the residual's slope there.
-
-    The crossings solve ``a sin ns + b cos ns = c`` exactly — tangent type:
-    ``atan2(num, den) = φ`` ⇔ ``num cos φ − den sin φ = 0``; cosine type:
-    ``den = cos θ_limit`` — at ``atan2(a, b) ± δ``, ``δ = acos(c/r)``
-    (``r = √(a²+b²)``; ``|c| ≤ r`` keeps ``c/r`` in [-1, 1] exactly), each
-    polished by one Newton step; the slope there is ``∓ r sin δ``.  A tangent-type
-    root is genuine where ``(num, den)`` points along φ, not φ + π
-    (``num sin φ + den cos φ > 0``); ``genuine_only`` drops the others.
-    """
-    if row.tangent:
-        cp, sp = row.cos_phi, row.sin_phi
-        a, b, c = num[0] * cp - den[0] * sp, num[1] * cp - den[1] * sp, den[2] * sp - num[2] * cp
-    else:
-        a, b, c = den[0], den[1], row.cos_limit - den[2]
-    r = math.hypot(a, b)
-    if not (r > 1e-14 and abs(c) <= r):
-        return []
-    delta = math.acos(c / r)
-    base, slope = math.atan2(a, b), r * math.sin(delta)
-    out = []
-    for x, rate in ((base + delta, -slope), (base - delta, slope)):
-        sx, cx = math.sin(x), math.cos(x)
-        if (
-            genuine_only
-            and row.tangent
-            and not ((num[0] * sx + num[1] * cx + num[2]) * sp + (den[0] * sx + den[1] * cx + den[2]) * cp > 0)
-        ):
-            continue
-        df = a * cx - b * sx
-        out.append((x - (a * sx + b * cx - c) / df if abs(df) > 1e-6 * r else x, rate))
-    return out
-
-
-def _singular_cuts(den: list[list[float]], joints: Container[int] = (1, 5)) -> list[tuple[int, float]]:
-    """``(k, ns)`` where joint k (2 or 6, 0-based 1 or 5) passes through 0: ``cos θ_k`` reaches 1."""
-    out = []
-    for k in (1, 5):
-        if k in joints:
-            sa, cb, c0 = den[k]
-            if c0 + math.hypot(sa, cb) >= 1.0 - SINGULAR_TOL:
-                out.append((k, math.atan2(sa, cb)))
-    return out
+def end_cause(code: int) -> Cause | None:
+    """The :class:`Cause` of an end code of :mod:`qpnso.elbow.closed_form` (a limit ``2·joint + is_max``, a
+    singular cut ``−1 − joint``, :data:`~qpnso.elbow.closed_form.NO_END`)."""
+    if code == NO_END:
+        return None
+    return Cause("limit", code // 2, _BOUNDS[code % 2]) if code >= 0 else Cause("singular", -1 - code)
 
 
 def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):
-    """Sorted, de-duplicated cut points in [-π, π) and a function naming each cut's cause.
+    """Sorted, de-duplicated cut points in [-π, π) and their end codes (:func:`end_cause`).
 
-    Returns ``(angles, labels, hard, cause)``: ``labels[i]`` indexes the limit
-    row, or is ``-1 − k`` for a singular cut of joint k; ``hard`` marks singular cuts.
+    Returns ``(angles, codes, hard)``: every limit crossing of the given joints (genuine or not) and every
+    singular cut; ``hard`` marks singular cuts (negative codes).
     """
-    table = _row_table(sm.sign, q_min, q_max)
-    num, den, wanted = sm.num.tolist(), sm.den.tolist(), set(joints.tolist())
-    roots = [(i, _crossings(t, num[t.joint], den[t.joint], False)) for i, t in enumerate(table) if t.joint in wanted]
-    found = [(i, r) for i, r in roots if r]
-    roots_ns = [r[0][0] for _, r in found] + [r[1][0] for _, r in found]  # all "+" roots, then all "−" roots
-    row_labels = [i for i, _ in found] * 2
-    for k, x in _singular_cuts(den, wanted):
-        roots_ns.append(x)
-        row_labels.append(-1 - k)
-    ang, lab = wrap(np.array(roots_ns, dtype=float)), np.array(row_labels, dtype=int)
+    rows, roots = np.empty((MAX_ROWS, ROW_FIELDS)), np.empty((2, 2))
+    wanted = set(joints.tolist())
+    first, second, codes = [], [], []  # all "+" roots, then all "−" roots
+    for i in range(limit_rows(sm.sign, q_min, q_max, rows)):
+        k = int(rows[i, 0])
+        if k in wanted and crossings(rows[i], sm.num[k], sm.den[k], False, roots):
+            first.append(roots[0, 0])
+            second.append(roots[1, 0])
+            codes.append(2 * k + int(rows[i, 6]))
+    roots_ns, labels = first + second, codes * 2
+    for k in (1, 5):
+        if k in wanted:
+            hit, x = singular_cut(sm.den, k)
+            if hit:
+                roots_ns.append(x)
+                labels.append(-1 - k)
+    ang, lab = wrap(np.array(roots_ns, dtype=float)), np.array(labels, dtype=int)
     order = np.lexsort((lab >= 0, ang))  # singular first among equal angles
     ang, lab = ang[order], lab[order]
     if ang.size > 1:
@@ -237,11 +161,7 @@ def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
         ang, lab = ang[distinct], lab[distinct]
         if ang[-1] - ang[0] > TWO_PI - _MERGE_TOL:
             ang, lab = ang[:-1], lab[:-1]
-
-    def cause(label: int) -> Cause:
-        return Cause("singular", -1 - label) if label < 0 else table[label].cause
-
-    return ang, lab, lab < 0, cause
+    return ang, lab, lab < 0
 
 
 def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):
@@ -249,7 +169,7 @@ def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
 
     The full circle is ``(-π, π, None, None)``.
     """
-    cuts, labels, hard, cause = _cuts(sm, q_min, q_max, joints)
+    cuts, labels, hard = _cuts(sm, q_min, q_max, joints)
     lo_lim, hi_lim = q_min[joints] - _FEASIBLE_TOL, q_max[joints] + _FEASIBLE_TOL
     m = cuts.size
     if m == 0:
@@ -271,52 +191,8 @@ def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
                 break
             j = nxt
         end = float(hi[j]) if j >= i else float(hi[j]) + TWO_PI
-        arcs.append((float(cuts[i]), end, cause(int(labels[i])), cause(int(labels[(j + 1) % m]))))
+        arcs.append((float(cuts[i]), end, end_cause(int(labels[i])), end_cause(int(labels[(j + 1) % m]))))
     return sorted(arcs, key=lambda arc: arc[0])
-
-
-def _closed_form_interval(
-    num: list, den: list, sign: np.ndarray, ns0: float, q_min: np.ndarray, q_max: np.ndarray
-) -> Interval:
-    """[E 9] directly: the nearest genuine exit crossing (or singular cut) on each side of ``ns0``.
-
-    ``num``, ``den``, ``sign``: the :class:`SelfMotion` rows (plain floats).
-    Valid because the configuration at ``ns0`` is within all limits: moving away
-    from it, the first limit crossing of any joint is where that joint leaves.
-    The residual's slope at a genuine root gives the direction in which the
-    joint leaves its bound.  Plain floats: about ten rows, each a scalar solve.
-    """
-    table = _row_table(sign, q_min, q_max)
-    n = len(table)
-    hi: tuple[float, int, Cause | None] = (math.inf, 0, None)  # (distance from ns0, tie-break order, cause)
-    lo = hi
-    for i, t in enumerate(table):
-        for j, (x, slope) in enumerate(_crossings(t, num[t.joint], den[t.joint], True)):
-            ahead = (x - ns0) % TWO_PI  # behind = 2π − ahead; ends within 1e-9 of ns0 count as 0
-            if (slope * t.rate_sign > 0) == t.is_max:
-                hi = min(hi, (0.0 if ahead > TWO_PI - 1e-9 else ahead, i + j * n, t.cause))
-            else:
-                lo = min(lo, (0.0 if ahead < 1e-9 else TWO_PI - ahead, i + j * n, t.cause))
-    for k, x in _singular_cuts(den):  # joints 2 and 6 through 0: singular cuts end the interval on both sides
-        cut = Cause("singular", k)
-        hi = _cut_or_crossing(hi, ((x - ns0) % TWO_PI, 2 * n + k, cut))
-        lo = _cut_or_crossing(lo, ((ns0 - x) % TWO_PI, 2 * n + k, cut))
-    if math.isinf(hi[0]) and math.isinf(lo[0]):
-        return Interval(ns0 - math.pi, ns0 + math.pi, True, "closed_form")
-    return Interval(ns0 - lo[0], ns0 + hi[0], False, "closed_form", lo[2], hi[2])
-
-
-CUT_TIE = 1e-9
-"""rad: a singular cut this close to the nearest limit crossing (or nearer) ends the interval and names it."""
-
-
-def _cut_or_crossing(
-    crossing: tuple[float, int, Cause | None], cut: tuple[float, int, Cause]
-) -> tuple[float, int, Cause | None]:
-    """The end of one side: the singular cut ``cut`` unless a limit crossing is nearer by more than
-    :data:`CUT_TIE`.  At a cut, joints 1 and 3 (5 and 7) jump by π, and their closed form shows a "crossing"
-    at the cut itself: without the tie, it named a limit of joint 3 that the joint was 80° away from."""
-    return cut if cut[0] <= crossing[0] + CUT_TIE else crossing
 
 
 # --------------------------------------------------------------- public API
@@ -353,20 +229,33 @@ def _limits_beyond_pi(robot: Robot) -> int | None:
     return int(wide[0]) if wide.size else None
 
 
+def closed_form_applies(robot: Robot) -> bool:
+    """Whether the continuity interval of ``robot`` has the closed form: an S-R-S arm whose joint limits are
+    inside ±π (:func:`_limits_beyond_pi`)."""
+    return is_srs(robot) and _limits_beyond_pi(robot) is None
+
+
 def continuity_interval(robot: Robot, q: object, options: "NumericalOptions | None" = None) -> Interval:
     """The continuity interval [E 9] holding the arm angle of ``q`` (rad, unwrapped).
 
-    Closed form for S-R-S arms whose joint limits are inside ±π, else :func:`numerical_interval`.  Raises
+    Closed form (:func:`qpnso.elbow.closed_form.srs_interval`, the kernel the control tick runs) when
+    :func:`closed_form_applies`, else :func:`numerical_interval`.  Raises
     JointLimitError if ``q`` is outside its limits and SingularityError if the
     arm angle or branch of ``q`` is undefined.
     """
     qv = robot.check_q(q)
-    if not is_srs(robot) or _limits_beyond_pi(robot) is not None:
+    if not closed_form_applies(robot):
         return numerical_interval(robot, qv, options)
     pin.framesForwardKinematics(robot.model, robot.data, qv)
     ns = _checked(_status_after_fk(robot))
-    num, den, sign, _ = _self_motion_rows(srs_geometry(robot), robot.data.oMf[robot.tool_frame_id], _branch_of(qv))
-    return _closed_form_interval(num, den, sign, ns, robot.q_min, robot.q_max)
+    branch_ = _branch_of(qv)
+    g = srs_geometry(robot)
+    R, p = pose_arrays(robot.data.oMf[robot.tool_frame_id])
+    code, lo, hi, full, lo_code, hi_code, dist = srs_interval(
+        g.record[0], R, p, *branch_floats(branch_), ns, robot.q_min, robot.q_max
+    )
+    raise_unless_reached(code, dist, g)
+    return Interval(lo, hi, bool(full), "closed_form", end_cause(lo_code), end_cause(hi_code))
 
 
 # ---------------------------------------------------------------- numerical

@@ -19,7 +19,6 @@ itself, its points and its gradient are in :mod:`qpnso.elbow.arm_angle`.
 from __future__ import annotations
 
 import itertools
-import math
 import weakref
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -28,15 +27,24 @@ from typing import Any, cast
 import numpy as np
 import pinocchio as pin
 
-from qpnso.elbow.arm_angle import Z0, ElbowPoints, _cached, _cross, _dot, _tcross
+from qpnso.elbow.arm_angle import Z0, ElbowPoints, _cached, _cross
+from qpnso.elbow.closed_form import (
+    KIND,
+    SRS_ELBOW_STRAIGHT,
+    SRS_UNREACHABLE,
+    SRS_WRIST_VERTICAL,
+    TAN,
+    self_motion_rows,
+    srs_dtype,
+)
 from qpnso.errors import InputError, ModelError, SingularityError, UnreachableError
 from qpnso.model.robot import POSE_NOT_FINITE, POSE_NOT_ROTATION, Robot, as_vector, pose_defect
 from qpnso.model.symbolic import joint_kind_and_axis
+from qpnso.records import new_record
 
 GEOMETRY_TOL = 1e-9
 """Tolerance (m, or unit-vector components) of the S-R-S structure check."""
 
-_TAN, _COS, _CONST = 0, 1, 2
 _GEOMETRY_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -106,7 +114,8 @@ class SrsGeometry:
     ``shoulder_from_world`` (3×4, ``[Fᵀ | −Fᵀ·p_s]``) maps world points to the
     shoulder frame (canonical axes), ``tool_to_wrist`` (4×4) is the wrist frame
     (canonical axes at ``q = 0``, origin at the wrist centre) in the tool frame, and
-    ``vertical`` the world vertical in canonical coordinates.
+    ``vertical`` the world vertical in canonical coordinates; ``record`` all of it for the kernels of
+    :mod:`qpnso.elbow.closed_form` (:func:`~qpnso.elbow.closed_form.srs_dtype`, a 1-element record).
     """
 
     frame: np.ndarray
@@ -120,6 +129,7 @@ class SrsGeometry:
     shoulder_from_world: np.ndarray
     tool_to_wrist: np.ndarray
     vertical: tuple[float, float, float]
+    record: np.ndarray
 
 
 def _line_point(origin: np.ndarray, ez: np.ndarray, o: np.ndarray, axis: np.ndarray, k: int, name: str) -> np.ndarray:
@@ -180,6 +190,18 @@ def _build_srs_geometry(robot: Robot) -> SrsGeometry:
     wrist_in_tool = o_t.rotation.T @ (p_w - o_t.translation)
     tool_to_wrist = np.eye(4)
     tool_to_wrist[:3, :3], tool_to_wrist[:3, 3] = o_t.rotation.T @ frame, wrist_in_tool
+    shoulder_from_world = np.column_stack([frame.T, -frame.T @ p_s])
+    vertical = _floats3(frame.T @ Z0)
+    record = new_record(srs_dtype())
+    for name, value in (
+        ("shoulder_from_world", shoulder_from_world),
+        ("tool_to_wrist", tool_to_wrist),
+        ("upper_arm_m", upper),
+        ("forearm_m", fore),
+        ("vertical", vertical),
+        ("axis_sign", axis_sign),
+    ):
+        record[name] = value
     return SrsGeometry(
         frame=frame,
         axis_sign=axis_sign,
@@ -189,9 +211,10 @@ def _build_srs_geometry(robot: Robot) -> SrsGeometry:
         wrist_in_tool=wrist_in_tool,
         tool_rotation0=o_t.rotation.copy(),
         points=points,
-        shoulder_from_world=np.column_stack([frame.T, -frame.T @ p_s]),
+        shoulder_from_world=shoulder_from_world,
         tool_to_wrist=tool_to_wrist,
-        vertical=_floats3(frame.T @ Z0),
+        vertical=vertical,
+        record=record,
     )
 
 
@@ -255,7 +278,7 @@ class SelfMotion:
         flat = arr.reshape(-1)
         basis = np.column_stack([np.sin(flat), np.cos(flat), np.ones_like(flat)])
         n, d = basis @ self.num.T, basis @ self.den.T
-        q = np.where(self.kind == _TAN, np.arctan2(n, d), np.arccos(np.clip(d, -1.0, 1.0))) * self.sign
+        q = np.where(self.kind == TAN, np.arctan2(n, d), np.arccos(np.clip(d, -1.0, 1.0))) * self.sign
         q[:, 3] = self.q4
         return q[0] if arr.ndim == 0 else q
 
@@ -268,113 +291,38 @@ def _floats3(v: Sequence[float]) -> _Vec:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
-def _scaled(k: float, v: Sequence[float]) -> _Vec:
-    return (k * v[0], k * v[1], k * v[2])
-
-
-def _lin(a: float, v: Sequence[float], b: float, w: Sequence[float]) -> _Vec:
-    return (a * v[0] + b * w[0], a * v[1] + b * w[1], a * v[2] + b * w[2])
-
-
-def _r03_transposed(v: Sequence[float], sin_a: float, cos_a: float, k_x: float, k_y: float) -> tuple[_Vec, _Vec, _Vec]:
-    """``R03ᵀ·v`` for ``v = (p, q, r)`` given in the arm-angle frame ``(u_sin, u_cos, u)``.
-
-    Each of the three components as its ``(sin ns, cos ns, 1)`` coefficients:
-    ``R03·ez = e1 = sin_a·(sin ns·u_sin + cos ns·u_cos) + cos_a·u`` (upper arm),
-    ``R03·ex = k_x·e1 + k_y·u`` (= (e2 − e1 cos q4)/(σ4 sin q4), e2 = (d·u − l1·e1)/l2),
-    ``R03·ey = e1 × R03·ex = k_y·(e1 × u)``.
-    """
-    p, q, r = v
-    e = (sin_a * p, sin_a * q, cos_a * r)
-    return (k_x * e[0], k_x * e[1], k_x * e[2] + k_y * r), (-k_y * e[1], k_y * e[0], 0.0), e
-
-
-def _rotation_coefficients(
-    g: SrsGeometry, pose: pin.SE3, b: Branch
-) -> tuple[tuple[tuple, tuple], tuple[tuple, tuple], float]:
-    """Last column and last row of ``R03`` and ``R47`` (canonical frame), affine in ``(sin ns, cos ns, 1)``.
-
-    Returns ``(r03, r47, q4)``: each block is ``(col, row)`` with ``col[i]`` the
-    coefficients ``(sin, cos, 1)`` of ``M[i, 2]`` and ``row[i]`` those of
-    ``M[2, i]`` — all that the Z-Y-Z angles need — and joint 4 (rad).
-    ``R47 = R4ᵀ·R03ᵀ·T`` (T = R07, R4 = Ry(σ4·q4)).  Plain floats: NumPy's call
-    overhead would dominate these few products.  Raises UnreachableError or
-    SingularityError (wrist on the vertical, straight elbow).
-    """
+def raise_unless_reached(code: int, dist: float, g: SrsGeometry) -> None:
+    """Raise what a code of :func:`~qpnso.elbow.closed_form.self_motion_rows` means (shoulder–wrist distance
+    ``dist``, m): UnreachableError or SingularityError; nothing for ``SRS_OK``."""
     l1, l2 = g.upper_arm_m, g.forearm_m
-    a = g.shoulder_from_world @ pose.homogeneous @ g.tool_to_wrist  # [T | p_sw] in the shoulder frame
-    p = a[:, 3].tolist()
-    dist = math.sqrt(_dot(p, p))
-    if dist > l1 + l2 or dist < abs(l1 - l2):
+    if code == SRS_UNREACHABLE:
         gap = dist - (l1 + l2) if dist > l1 + l2 else abs(l1 - l2) - dist
         raise UnreachableError(
             f"pose out of reach: shoulder–wrist distance {dist:.6f} m is outside "
             f"[{abs(l1 - l2):.6f}, {l1 + l2:.6f}] m (by {gap:.3g} m)"
         )
-    cos4 = (dist * dist - l1 * l1 - l2 * l2) / (2 * l1 * l2)
-    sin4 = b.s4 * math.sqrt(max(0.0, 1.0 - cos4 * cos4))
-    u = _scaled(1.0 / dist, p)
-    z_x = _tcross(g.vertical, u)
-    n_zx = math.sqrt(_dot(z_x, z_x))
-    if n_zx < 1e-12:
+    if code == SRS_WRIST_VERTICAL:
         raise SingularityError("arm angle undefined: the wrist centre is on the vertical through the shoulder")
-    if abs(sin4) < 1e-12:
+    if code == SRS_ELBOW_STRAIGHT:
         raise SingularityError("arm angle undefined: the elbow is straight (joint 4 = 0) for this pose")
-    u_sin = _scaled(1.0 / n_zx, z_x)
-    u_cos = _tcross(u, u_sin)
-    cos_a = (l1 * l1 + dist * dist - l2 * l2) / (2 * l1 * dist)
-    sin_a = math.sqrt(max(0.0, 1.0 - cos_a * cos_a))
-    c4 = max(-1.0, min(1.0, cos4))
-    s4 = float(g.axis_sign[3]) * sin4  # R4 = Ry(σ4·q4): cosine c4, sine s4
-    k = (sin_a, cos_a, (-(l1 / l2) - cos4) / s4, (dist / l2) / s4)  # sin_a, cos_a, k_x, k_y
-    col03 = tuple((sin_a * u_sin[i], sin_a * u_cos[i], cos_a * u[i]) for i in range(3))  # R03·ez = e1
-    row03 = _r03_transposed((u_sin[2], u_cos[2], u[2]), *k)  # R03ᵀ·ez
-    t_b = (a[:, :3].T @ np.array([u_sin, u_cos, u]).T).tolist()  # T's columns in the arm-angle frame
-    x, y, e = _r03_transposed(t_b[2], *k)  # R03ᵀ·t2
-    col47 = (_lin(c4, x, -s4, e), y, _lin(s4, x, c4, e))  # R4ᵀ·R03ᵀ·t2
-    kappa, k_u = s4 * k[2] + c4, s4 * k[3]  # R03·R4·ez = κ·e1 + s4·k_y·u
-    row47 = tuple((kappa * sin_a * p, kappa * sin_a * q, (kappa * cos_a + k_u) * r) for p, q, r in t_b)
-    q4 = b.s4 * math.acos(c4)
-    return (col03, row03), (col47, row47), q4
 
 
-_ZERO = (0.0, 0.0, 0.0)
+def pose_arrays(pose: pin.SE3) -> tuple[np.ndarray, np.ndarray]:
+    """A pose's rotation and translation (m) as C-ordered float arrays: the one argument type of the kernels."""
+    return np.ascontiguousarray(pose.rotation, dtype=float), np.ascontiguousarray(pose.translation, dtype=float)
 
 
-def _zyz_rows(col: tuple, row: tuple, sb: float) -> tuple[list[tuple], list[tuple]]:
-    """``num`` and ``den`` rows of the three Z-Y-Z angles of ``M = Rz(σa·qa)·Ry(σb·qb)·Rz(σc·qc)``.
-
-    ``qa = σa·atan2(sb·M12, sb·M02)``, ``qb = s·acos(M22)``,
-    ``qc = σc·atan2(sb·M21, −sb·M20)``, ``sb = s·σb`` the sign of the middle Euler angle.
-    """
-    return [_scaled(sb, col[1]), _ZERO, _scaled(sb, row[1])], [_scaled(sb, col[0]), col[2], _scaled(-sb, row[0])]
-
-
-_KIND = np.array([_TAN, _COS, _TAN, _CONST, _TAN, _COS, _TAN])
-_BRANCH_TABLES: dict[tuple, tuple[float, float, np.ndarray]] = {}
-
-
-def _branch_table(g: SrsGeometry, b: Branch) -> tuple[float, float, np.ndarray]:
-    """Middle-angle signs ``sb`` of R03 and R47 and joint signs (7,) of a geometry and branch (cached)."""
-    key = (g.axis_sign.tobytes(), b.s2, b.s4, b.s6)
-    if key not in _BRANCH_TABLES:
-        s_mid = np.array([b.s2, b.s2, b.s2, b.s4, b.s6, b.s6, b.s6], dtype=float)
-        sign = np.where(_KIND == _COS, s_mid, g.axis_sign)
-        _BRANCH_TABLES[key] = (float(b.s2 * g.axis_sign[1]), float(b.s6 * g.axis_sign[5]), sign)
-    return _BRANCH_TABLES[key]
-
-
-def _self_motion_rows(g: SrsGeometry, pose: pin.SE3, b: Branch) -> tuple[list[tuple], list[tuple], np.ndarray, float]:
-    """:class:`SelfMotion`'s ``num``, ``den`` (7 rows of plain floats), ``sign`` and ``q4``."""
-    r03, r47, q4 = _rotation_coefficients(g, pose, b)
-    sb03, sb47, sign = _branch_table(g, b)
-    (num03, den03), (num47, den47) = _zyz_rows(*r03, sb03), _zyz_rows(*r47, sb47)
-    return num03 + [_ZERO] + num47, den03 + [_ZERO] + den47, sign, q4
+def branch_floats(b: Branch) -> tuple[float, float, float]:
+    """A branch's signs as floats, the kernels' one argument type (the tick passes floats too)."""
+    return float(b.s2), float(b.s4), float(b.s6)
 
 
 def _self_motion(g: SrsGeometry, pose: pin.SE3, b: Branch) -> SelfMotion:
-    num, den, sign, q4 = _self_motion_rows(g, pose, b)
-    return SelfMotion(np.array(num), np.array(den), _KIND, sign, q4, b)
+    """:class:`SelfMotion` from the kernel :func:`~qpnso.elbow.closed_form.self_motion_rows`."""
+    num, den, sign = np.empty((7, 3)), np.empty((7, 3)), np.empty(7)
+    code, q4, dist = self_motion_rows(g.record[0], *pose_arrays(pose), *branch_floats(b), num, den, sign)
+    raise_unless_reached(code, dist, g)
+    return SelfMotion(num, den, KIND, sign, q4, b)
 
 
 def self_motion(robot: Robot, pose: object, branch_: object) -> SelfMotion:

@@ -147,10 +147,15 @@ def test_non_finite_qp_data_never_reach_the_solver(bad: str) -> None:
         assert result.x == pytest.approx([0.0, 0.0, 1.0])  # the level above stands
 
 
-@pytest.mark.parametrize("where", ["tool_pose", "ns0", "complex_q", "complex_twist", "tool_pose_type", "text_q", "dq"])
+@pytest.mark.parametrize(
+    "where",
+    ["tool_pose", "ns0", "complex_q", "complex_twist", "nan_twist", "inf_twist", "tool_pose_type", "text_q", "dq"],
+)
 def test_bad_inputs_raise_input_error_naming_them(robot, controllers, where: str) -> None:
     ctrl = controllers["damped"]
     ctrl.reset(Q1)
+    ctrl.step(Q1, tool_twist=np.full(6, 0.01))
+    memory = ctrl.records.memory.copy()
     pose = tool_pose(robot, Q1)
     if where == "tool_pose":
         bad = pin.SE3(pose.rotation, np.array([np.nan, 0.0, 0.0]))
@@ -163,12 +168,18 @@ def test_bad_inputs_raise_input_error_naming_them(robot, controllers, where: str
         call, name = (lambda: ctrl.step(Q1 + 1e-3j)), "q"
     elif where == "complex_twist":
         call, name = (lambda: ctrl.step(Q1, tool_twist=np.zeros(6) + 1j)), "tool_twist"
+    elif where in ("nan_twist", "inf_twist"):  # (a float array: the tick's kernel checks it)
+        twist = np.full(6, 0.01)
+        twist[4] = np.nan if where == "nan_twist" else -np.inf
+        call, name = (lambda: ctrl.step(Q1, tool_twist=twist)), r"tool_twist contains NaN or inf at index \[4\]"
     elif where == "text_q":
         call, name = (lambda: ctrl.step([str(x) for x in Q1])), "q"
     else:
         call, name = (lambda: ctrl.step(Q1, dq=10 * robot.dq_max)), r"dq\[0\]"
     with pytest.raises(qpnso.InputError, match=name):
         call()
+    if where != "ns0":  # a refused step changes nothing: the reference, the arm angle, the interval's age
+        assert ctrl.records.memory.tobytes() == memory.tobytes()
     cmd = ctrl.step(Q1)  # the controller goes on as before
     assert cmd.ok and np.all(np.isfinite(cmd.dq))
 

@@ -370,7 +370,7 @@ def test_failed_level_two_holds_the_tool(robot, monkeypatch) -> None:
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     ctrl.reset(Q0)
     monkeypatch.setattr(
-        ctrl.qp._backend, "solve_arrays", lambda *args: _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE")
+        ctrl.qp._backend, "solve_arrays", lambda *args, **kwargs: _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE")
     )
     failures = ctrl.qp.stats.failures
     a = ctrl.step(Q0)
@@ -406,7 +406,7 @@ def test_a_bad_level_two_answer_holds_the_tool(robot, monkeypatch, answer, words
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     ctrl.reset(Q0)
     monkeypatch.setattr(
-        ctrl.qp._backend, "solve_arrays", lambda *args: _Raw(answer, LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED")
+        ctrl.qp._backend, "solve_arrays", lambda *args, **kwargs: _Raw(answer, LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED")
     )
     a = ctrl.step(Q0)
     assert a.status & Status.QP_FAILED and words in a.message and "tool held" in a.message
@@ -560,11 +560,11 @@ def test_the_reference_advances_along_the_twist_as_pinocchios_exp3(seed: int) ->
     rng = np.random.default_rng(seed)
     R0, p0 = pin.exp3(rng.standard_normal(3)), rng.standard_normal(3)
     memory = new_memory(7, 0.0, 0.0, R0.copy(), p0.copy())
-    advance_reference(memory, np.zeros(6), 1e-3)
+    advance_reference(memory[0], np.zeros(6), 1e-3)
     np.testing.assert_array_equal(memory[0]["ref_R"], R0)
     np.testing.assert_array_equal(memory[0]["ref_p"], p0)
     twist = rng.standard_normal(6) * 10.0 ** (seed - 4)
-    advance_reference(memory, twist, 1e-3)
+    advance_reference(memory[0], twist, 1e-3)
     np.testing.assert_allclose(memory[0]["ref_R"], pin.exp3(1e-3 * twist[3:]) @ R0, rtol=0, atol=1e-15)
     np.testing.assert_allclose(memory[0]["ref_p"], p0 + 1e-3 * twist[:3], rtol=0, atol=1e-15)
 

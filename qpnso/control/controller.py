@@ -41,7 +41,7 @@ from qpnso.control.flags import (
     FLAG_QP_FAILED,
     PREDICTION_MISSED,
 )
-from qpnso.control.memory import advance_reference, interval_failed, new_memory, store_interval
+from qpnso.control.memory import interval_failed, new_memory, store_interval
 from qpnso.control.params import tick_params
 from qpnso.control.rows import RowKind
 from qpnso.control.rows.kind import row_counts
@@ -51,6 +51,7 @@ from qpnso.control.tick import (
     TICK_NOT_FINITE,
     TICK_Q_REFUSED,
     TICK_STATE_NOT_FINITE,
+    TICK_TWIST_NOT_FINITE,
     Report,
     begin_tick,
     finish_tick,
@@ -61,7 +62,7 @@ from qpnso.control.tick import (
 from qpnso.elbow.intervals import continuity_interval
 from qpnso.errors import ConfigError, InputError, QpnsoError
 from qpnso.model.costs import CostModel
-from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar
+from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar, tick_vector
 from qpnso.qp import HierarchicalQP
 from qpnso.qp.problem import STOPPED, new_problem
 from qpnso.records import new_record
@@ -135,7 +136,6 @@ class Controller:
         self.elbow_config = cfg.elbow()
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
         n = robot.nq
-        self._q_shape = (n,)
         self._dq_accepted = cfg.dq_tolerance_factor * robot.dq_max  # rad/s: beyond, InputError
         self._time_budget = cfg.solver_time_budget
         self._no_twist = np.zeros(6)  # never written (writable: a read-only array is another Numba type)
@@ -248,17 +248,9 @@ class Controller:
         t0 = time.perf_counter()
         if not self._reset_done:
             raise QpnsoError("call Controller.reset(q0) before step()")
-        qv = (
-            q
-            if type(q) is np.ndarray
-            and q.dtype == np.float64
-            and q.shape == self._q_shape
-            and q.flags.c_contiguous
-            and q.flags.writeable
-            else as_vector(q, self.robot.nq, "q")
-        )
+        qv = tick_vector(q, self.robot.nq, "q")
         dq_meas = self._dq_prev if dq is None else self._checked_dq(dq)
-        twist = self._no_twist if tool_twist is None else as_vector(tool_twist, 6, "tool_twist")
+        twist = self._no_twist if tool_twist is None else tick_vector(tool_twist, 6, "tool_twist")
         if tool_pose is not None:
             P = self.records.params[0]
             if limits_status(qv, P["q_accept_lo"], P["q_accept_hi"]):
@@ -266,7 +258,7 @@ class Controller:
             self.ref_rotation, self.ref_position = checked_pose(tool_pose, "tool_pose")
         fallbacks = self.qp.stats.active_set_fallbacks
         try:
-            cmd = self._tick(qv, twist, dq_meas, t0)
+            cmd = self._tick(qv, twist, dq_meas, t0, tool_pose is None)
         except QpnsoError:
             raise
         except Exception as exc:  # a bug must not reach the robot as a traceback: stop, say why
@@ -275,24 +267,25 @@ class Controller:
             )
         if self.qp.stats.active_set_fallbacks != fallbacks:
             cmd.status |= Status.QP_FALLBACK
-        if tool_pose is None:
-            advance_reference(self.records.memory, twist, self.config.dt)  # (no twist: unchanged)
         self._dq_prev = cmd.dq
         self._twist_prev[:] = twist  # (a copy: the caller may reuse its array)
         self.step_count += 1
         return cmd
 
-    def _tick(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float) -> Command:
-        """The four steps of every tick (module docstring)."""
+    def _tick(self, qv: np.ndarray, twist: np.ndarray, dq_meas: np.ndarray, t0: float, follow: bool) -> Command:
+        """The four steps of every tick (module docstring); ``follow``: the reference advances along the twist
+        (no ``tool_pose`` given)."""
         rec, tick = self.records, self.tick
         state = self.evaluate.record(qv, self._dq_prev, twist, self._twist_prev)  # (rec.state: written in place)
         rec.q, rec.dq_meas = qv, dq_meas
-        code = begin_tick(qv, twist, tick)
+        code = begin_tick(qv, twist, tick, follow)
         if code == TICK_NEED_INTERVAL:
             self._update_interval(qv, state)
-            code = begin_tick(qv, twist, tick)
+            code = begin_tick(qv, twist, tick, follow)
         if code == TICK_NOT_FINITE or code == TICK_Q_REFUSED:
             self._refuse_q(qv)  # raises, naming the entries or the joint
+        if code == TICK_TWIST_NOT_FINITE:
+            as_vector(twist, 6, "tool_twist")  # raises, naming the entries
         if code == TICK_STATE_NOT_FINITE:
             bits = int(rec.report[0]["bits"])
             return self._stop(qv, state[0]["g"].copy(), bits, t0, "the arm's state is not finite")

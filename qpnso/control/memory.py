@@ -153,11 +153,10 @@ def elbow_stiffness(ns, m, P):
 
 
 @njit(cache=True)
-def advance_reference(memory, twist, dt):
-    """The tool's reference pose moved along ``twist`` (m/s then rad/s, world frame) for one tick of ``dt`` s:
-    ``p ← p + dt·v``, ``R ← exp(dt·ω) R`` (Rodrigues' formula, ``1 − cos θ`` as ``2 sin²(θ/2)``; a zero twist
-    changes nothing)."""
-    m = memory[0]
+def advance_reference(m, twist, dt):
+    """The tool's reference pose in the memory record ``m`` moved along ``twist`` (m/s then rad/s, world frame)
+    for one tick of ``dt`` s: ``p ← p + dt·v``, ``R ← exp(dt·ω) R`` (Rodrigues' formula, ``1 − cos θ`` as
+    ``2 sin²(θ/2)``; a zero twist changes nothing)."""
     R, p = m.ref_R, m.ref_p
     for i in range(3):
         p[i] += dt * twist[i]

@@ -39,6 +39,7 @@ from qpnso.control.flags import (
     PREDICTION_MISSED,
 )
 from qpnso.control.memory import (
+    advance_reference,
     arm_angle_singular,
     elbow_advance,
     elbow_bounds,
@@ -60,9 +61,10 @@ LOG3_NEAR_PI = 0.75 * math.pi
 antisymmetric part, ``2 sin θ·a``, vanishes at π: from it, the rotation was off by 1.6e-9 at π − 1e-3;
 from the symmetric part by 1e-15 from here to π, measured against ``pinocchio.exp3``)."""
 
-TICK_READY, TICK_NOT_FINITE, TICK_Q_REFUSED, TICK_STATE_NOT_FINITE, TICK_NEED_INTERVAL = 0, 1, 2, 3, 4
+TICK_READY, TICK_NOT_FINITE, TICK_Q_REFUSED, TICK_STATE_NOT_FINITE, TICK_NEED_INTERVAL, TICK_TWIST_NOT_FINITE = range(6)
 """Codes of :func:`begin_tick`: the problem is ready; ``q`` has a NaN or an infinite entry, or is beyond
-its limits by more than the accepted tolerance (nothing done: the caller raises); the state at ``q`` is not
+its limits by more than the accepted tolerance, or the tool twist has a NaN or an infinite entry (the last
+code; nothing done: the caller raises); the state at ``q`` is not
 finite (nothing done: the caller stops the joints); the continuity interval is due and has no closed form
 (the memory advanced: the caller renews it numerically, then calls :func:`begin_tick` again)."""
 
@@ -280,13 +282,15 @@ def finish_command(q, c, gravity, P, r):
 
 
 @njit(cache=True)
-def begin_tick(q, twist, tick):
+def begin_tick(q, twist, tick, follow):
     """A tick up to its level 2, on the tick record (:func:`tick_dtype`) at ``q`` (rad) with the tool
     ``twist`` (m/s, rad/s): its state made safe, its memory advanced, level 1 and the bounds written into its
-    problem (no level 2 yet) and its report.
+    problem (no level 2 yet) and its report; then, if ``follow``, the tool's reference advanced along the twist
+    for the next tick (:func:`qpnso.control.memory.advance_reference`).
 
     In order: ``q`` checked (:data:`TICK_NOT_FINITE`, :data:`TICK_Q_REFUSED`; outside its limits but within
-    the tolerance: ``Q_OUT_OF_LIMITS``), the state (:data:`TICK_STATE_NOT_FINITE`), the elbow — dropped when
+    the tolerance: ``Q_OUT_OF_LIMITS``), the twist (:data:`TICK_TWIST_NOT_FINITE`), the state
+    (:data:`TICK_STATE_NOT_FINITE`, the reference advanced all the same), the elbow — dropped when
     the arm angle is singular (``ELBOW_DROPPED``), else advanced — the continuity interval renewed when due
     (:func:`qpnso.control.memory.renew_interval`; :data:`TICK_NEED_INTERVAL` for an arm without its closed
     form) — and bounded (:func:`qpnso.control.memory.elbow_bounds`) — then level 1's
@@ -300,9 +304,14 @@ def begin_tick(q, twist, tick):
         return TICK_NOT_FINITE
     if limit == 1 and limits_status(q, P.q_accept_lo, P.q_accept_hi):
         return TICK_Q_REFUSED
+    for i in range(6):
+        if not math.isfinite(twist[i]):
+            return TICK_TWIST_NOT_FINITE
     bits = sanitize_state(s) | (FLAG_Q_OUT_OF_LIMITS if limit == 1 else 0)
     r.bits = bits
     if bits & FLAG_INTERNAL_ERROR:
+        if follow:
+            advance_reference(m, twist, P.dt)
         return TICK_STATE_NOT_FINITE
     if arm_angle_singular(s, P):
         ns = m.ns
@@ -331,6 +340,8 @@ def begin_tick(q, twist, tick):
     pb.lb[:], pb.ub[:] = velocity_bounds(q, P)
     pb.has_level2, pb.n_hard, pb.n_soft = 0, 0, 0
     add_rows(pb, s, P)  # the row kinds' rows (qpnso.control.rows)
+    if follow:
+        advance_reference(m, twist, P.dt)  # (after level 1 read it: the next tick's reference)
     return TICK_READY
 
 

@@ -129,6 +129,21 @@ def as_vector(x: object, n: int, name: str) -> np.ndarray:
     return v
 
 
+def tick_vector(x: object, n: int, name: str) -> np.ndarray:
+    """``x`` itself when it already is the control tick's one vector type (a writable, C-ordered float64
+    NumPy array of shape (n,)), its finiteness then checked by the tick's kernel; else :func:`as_vector`
+    (checked and converted here).  A caller's loop passing fresh arrays pays no Python check."""
+    if (
+        type(x) is np.ndarray
+        and x.dtype == np.float64
+        and x.shape == (n,)
+        and x.flags.c_contiguous
+        and x.flags.writeable
+    ):
+        return x
+    return as_vector(x, n, name)
+
+
 class Robot:
     """A serial arm: Pinocchio model and data, limits, tool frame and friction.
 

@@ -276,7 +276,7 @@ class HierarchicalQP:
             return [first]
         level = data[1]
         qp = _line_level_qp(level, line, self._tol)
-        raw = finite_data_raw(qp) or self._backend.solve_arrays(1, qp)
+        raw = finite_data_raw(qp) or self._backend.solve_arrays(1, qp, warm=False)  # (a new line each tick)
         second = self._line_result(raw, qp, level.n_slack, line)
         if second.ok:
             assert second.x is not None  # a solved level has its x
@@ -317,7 +317,7 @@ class HierarchicalQP:
         if code == LINE_NOT_FINITE:
             raw = _Raw(None, LevelStatus.SOLVER_ERROR, 0, "non-finite QP data (NaN or inf in the problem)")
         elif nv:
-            raw = self._backend.solve_arrays(1, self._line_arrays(line, nv, self._line_p[0]))
+            raw = self._backend.solve_arrays(1, self._line_arrays(line, nv, self._line_p[0]), warm=False)
         else:
             raw = _Raw(_NO_VECTOR, LevelStatus.SOLVED, 0, "")
         v = solved_vector(raw, (nv,)) if code == LINE_OK else None

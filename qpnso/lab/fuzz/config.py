@@ -89,6 +89,7 @@ class FuzzConfig:
     drift_tol_m: float = 1e-6
     drift_tol_rad: float = 1e-6
     solve_time_max: float = 1e-3  # s
+    replays: int = 2  # each episode with a tick over solve_time_max is run again this many times (0: none)
     recovery_ticks: int = 100
     recovery_tol_m: float = 1e-4
     rom_strategies: tuple[str, ...] = ("qp", "rom")  # strategies that keep the elbow in ROM_t
@@ -107,6 +108,8 @@ class FuzzConfig:
             raise ConfigError(f"unknown or no probe kinds {bad}; choose from {PROBE_KINDS}")
         if self.probe_burst_max < 1:
             raise ConfigError("probe_burst_max must be >= 1 (p_probe_burst = 0 sends no bad inputs)")
+        if self.replays < 0:
+            raise ConfigError("replays must be >= 0")
         if self.ticks < 1 or self.episode_ticks < 1:
             raise ConfigError("ticks and episode_ticks must be >= 1")
         if self.p_start_near_limit + self.p_start_singular > 1 or self.p_twist + self.p_pull + self.p_overshoot > 1:

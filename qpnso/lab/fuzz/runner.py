@@ -9,12 +9,13 @@ import contextlib
 import gc
 import math
 import time
+from dataclasses import replace
 from typing import Iterator
 
 from qpnso.control.config import ControllerConfig
 from qpnso.control.controller import Controller
 from qpnso.lab.fuzz.checker import TickChecker
-from qpnso.lab.fuzz.config import FuzzConfig, Observer, Progress
+from qpnso.lab.fuzz.config import FuzzConfig, Observer, Progress, Where
 from qpnso.lab.fuzz.episode import Episode, SolverClock
 from qpnso.lab.fuzz.report import FuzzReport
 from qpnso.model.robot import load_robot
@@ -62,6 +63,31 @@ class Fuzzer:
         with realtime_gc():
             return self._run(progress)
 
+    def replay_slow(self) -> None:
+        """Each tick over ``solve_time_max`` of solver CPU time (the check "solve_time") whose episode is
+        replayed ``config.replays`` times on the same controllers (reset at each episode's start, so each replay
+        runs the same ticks): counted in "solve_time_reproduced" when every replay has the same tick over
+        ``solve_time_max`` of solver CPU time again.  A slow tick that the code causes is slow every time; one
+        that the machine causes (another process, the hypervisor) is not."""
+        cfg, rep = self.config, self.report
+        for where, _ in rep.slow:
+            again = [self._replayed_slow_ticks(where) for _ in range(cfg.replays)]
+            if cfg.replays and all(where.tick in ticks for ticks in again):
+                rep.record("solve_time_reproduced", again[-1][where.tick], where, {}, f"reproduced in {cfg.replays}")
+
+    def _replayed_slow_ticks(self, where: Where) -> dict[int, float]:
+        """One replay of ``where``'s episode alone: its ticks over ``solve_time_max`` of solver CPU time
+        (tick → solver wall time, s)."""
+        cfg = self.config
+        replay = Fuzzer(
+            replace(cfg, first_episode=where.episode, ticks=cfg.episode_ticks, strategies=(where.strategy,), replays=0)
+        )
+        replay.robot, replay._controllers, replay.clocks = self.robot, self._controllers, self.clocks
+        replay.checker = TickChecker(self.robot, replay.config, replay.report)
+        replay.checker.dt, replay.checker.correction_speed = self.checker.dt, self.checker.correction_speed
+        Episode(replay, where.episode, cfg.episode_ticks).run(lambda: None, math.inf)
+        return {w.tick: seconds for w, seconds in replay.report.slow}
+
     def _run(self, progress: Progress | None) -> FuzzReport:
         cfg, rep = self.config, self.report
         t0 = time.perf_counter()
@@ -81,8 +107,9 @@ class Fuzzer:
             index += 1
             if rep.ticks == before and rep.episodes > 10 * (1 + cfg.ticks // cfg.episode_ticks):
                 break  # every start refused: nothing more to learn
-        rep.wall_seconds = time.perf_counter() - t0
         rep.completed = rep.ticks >= cfg.ticks
+        self.replay_slow()
+        rep.wall_seconds = time.perf_counter() - t0
         return rep
 
 

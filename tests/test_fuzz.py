@@ -257,7 +257,7 @@ def test_seeded_closed_loop_fuzz_holds_every_line() -> None:
 
 def test_a_tick_slow_only_in_wall_time_counts_as_preempted(tool_robot) -> None:
     """A tick over the solver-time limit in wall time in which the solver used less CPU time than the limit is
-    the machine's (preempted), not a violation; one over it in CPU time too is."""
+    the machine's (preempted); one over it in CPU time too is a slow tick, kept to be replayed (next test)."""
     rep = FuzzReport(FuzzConfig())
     checker = TickChecker(tool_robot, rep.config, rep)
     q = tool_robot.sample_configuration()
@@ -269,8 +269,8 @@ def test_a_tick_slow_only_in_wall_time_counts_as_preempted(tool_robot) -> None:
         fake_command(tool_robot, q, solve_time=2e-3), q, WHERE, {"q": q}, cpu_time=3e-3, solver_cpu_time=1.5e-3
     )
     assert rep.counts["preempted"] == 1 and rep.counts["solve_time"] == 1
-    failures = rep.failures()
-    assert len(failures) == 1 and failures[0].startswith("0 ticks over")  # the preempted line is not a must-hold
+    assert rep.failures() == []  # neither line is a must-hold: a slow tick fails when its replays reproduce it
+    assert [where.tick for where, _ in rep.slow] == [WHERE.tick]  # (the slow one kept for its replays)
     assert rep.percentiles()["tick_cpu_time"]["n"] == 2
 
 

@@ -369,9 +369,8 @@ def test_a_hard_row_folds_into_the_segment(robot) -> None:
 def test_failed_level_two_holds_the_tool(robot, monkeypatch) -> None:
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     ctrl.reset(Q0)
-    monkeypatch.setattr(
-        ctrl.qp._backend, "solve_arrays", lambda *args, **kwargs: _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE")
-    )
+    failed = _Raw(None, LevelStatus.INFEASIBLE, 3, "proxsuite TEST_FAILURE")
+    monkeypatch.setattr(ctrl.qp._backend, "solve_arrays", lambda *args, **kwargs: failed)
     failures = ctrl.qp.stats.failures
     a = ctrl.step(Q0)
     assert a.status & Status.QP_FAILED and not a.ok
@@ -405,9 +404,8 @@ def test_singular_tool_task_takes_the_damped_general_cascade(robot, monkeypatch)
 def test_a_bad_level_two_answer_holds_the_tool(robot, monkeypatch, answer, words: str) -> None:
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     ctrl.reset(Q0)
-    monkeypatch.setattr(
-        ctrl.qp._backend, "solve_arrays", lambda *args, **kwargs: _Raw(answer, LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED")
-    )
+    solved = _Raw(answer, LevelStatus.SOLVED, 1, "proxsuite PROXQP_SOLVED")
+    monkeypatch.setattr(ctrl.qp._backend, "solve_arrays", lambda *args, **kwargs: solved)
     a = ctrl.step(Q0)
     assert a.status & Status.QP_FAILED and words in a.message and "tool held" in a.message
     assert np.all(np.isfinite(a.dq)) and np.all(np.isfinite(a.tau))

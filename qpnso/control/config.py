@@ -97,6 +97,8 @@ class ControllerConfig:
     gradient_omega_max: float = 10.0  # rad/s [M 20]
     elbow_up_angle_deg: float = 0.0  # arm angle the elbow-up strategy holds
     interval_period: int = 10  # ticks between interval updates while the tool moves
+    interval_steps_per_tick: int = 1  # an arm without the closed form (the Panda): self-motion steps of its
+    # numerical continuity interval per tick (NumericalWalk, ~0.2-0.3 ms each; a whole walk took 35 ms median)
     q_limit_tolerance_deg: float = 2.0  # deg (>= 0): how far outside its limits a measured joint
     # may be and still be brought back (Status.Q_OUT_OF_LIMITS); beyond it the tick raises
     recovery_speed: float = 0.2  # rad/s (> 0): the largest speed bringing a joint back inside its limits
@@ -148,6 +150,8 @@ class ControllerConfig:
                 raise out_of_range(self, name, "must be >= 0")
         if self.interval_period < 1:
             raise out_of_range(self, "interval_period", "must be >= 1 tick")
+        if self.interval_steps_per_tick < 1:
+            raise out_of_range(self, "interval_steps_per_tick", "must be >= 1 step")
         if self.dq_tolerance_factor < 1:
             raise out_of_range(self, "dq_tolerance_factor", "must be >= 1")
         if self.solver_time_budget is not None and not self.solver_time_budget > 0:

@@ -59,7 +59,7 @@ from qpnso.control.tick import (
     stop_tick,
     tick_dtype,
 )
-from qpnso.elbow.intervals import continuity_interval
+from qpnso.elbow.intervals import NumericalWalk, closed_form_applies, continuity_interval
 from qpnso.errors import ConfigError, InputError, QpnsoError
 from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar, tick_vector
@@ -160,6 +160,7 @@ class Controller:
         self._command_views = (command["dq"][0], command["q_des"][0], command["tau"][0])
         self._ref = (memory["ref_R"][0], memory["ref_p"][0])  # views (reset rewrites the memory in place)
         self.strategy = make_strategy(cfg.strategy, self)
+        self._closed_form = closed_form_applies(robot)
         self._reset_done = False
         self._warm_up()
 
@@ -204,6 +205,9 @@ class Controller:
         )
         self._dq_prev = np.zeros(self.robot.nq)
         self._twist_prev = np.zeros(6)  # m/s, rad/s: the previous tick's tool twist (its change is predicted)
+        self._walk: NumericalWalk | None = None  # an arm without the closed form: its interval's walk under way
+        if not self._closed_form:  # its first interval here, whole (a reset is no tick): the first tick has it
+            self._first_interval(q, state)
         self.qp.reset()  # warm starts and solver objects: a reset controller answers as a new one
         self.strategy.reset(q, state)
         self._reset_done = True
@@ -391,18 +395,36 @@ class Controller:
             return np.zeros(self.robot.nq)
 
     def _update_interval(self, q: np.ndarray, state: np.ndarray) -> None:
-        """Recompute the continuity interval [E 9] at ``q`` into the memory, for an arm without its closed form
-        (numerical: :func:`qpnso.elbow.intervals.numerical_interval`; the tick renews a closed-form one itself);
-        when it cannot be, the previous one (or, before any, the full circle) stands, marked stale
+        """Renew the continuity interval [E 9] of an arm without its closed form (the tick renews a closed-form one
+        itself): the numerical walk (:class:`qpnso.elbow.intervals.NumericalWalk`) started at ``q`` when none is
+        under way, advanced by ``interval_steps_per_tick`` steps, stored with the tool pose it started at once it
+        is done — until then the last interval stands (the memory asks again next tick).  When it cannot be
+        computed, the last one (or, before any, the full circle) stands, marked stale
         (:func:`qpnso.control.memory.interval_failed`)."""
+        m = self.records.memory[0]
+        try:
+            if self._walk is None:
+                self._walk = NumericalWalk(self.robot, q)
+                s = state[0]
+                self._walk_pose = (s["R"].copy(), s["p"].copy())
+            interval = self._walk.advance(self.config.interval_steps_per_tick)
+        except QpnsoError:
+            self._walk = None
+            interval_failed(m)
+            return
+        if interval is not None:
+            self._walk = None
+            store_interval(m, interval.lo, interval.hi, interval.full_circle, *self._walk_pose)
+
+    def _first_interval(self, q: np.ndarray, state) -> None:
+        """A run's first continuity interval of an arm without the closed form, at ``q`` whole (35 ms median on
+        the Panda); when it cannot be computed the tick tries again ``interval_period`` ticks later."""
         m = self.records.memory[0]
         try:
             interval = continuity_interval(self.robot, q)
         except QpnsoError:
-            interval_failed(m)
-            return
-        s = state[0]
-        store_interval(m, interval.lo, interval.hi, interval.full_circle, s["R"], s["p"])
+            return  # (none known: the first tick's elbow_advance asks again)
+        store_interval(m, interval.lo, interval.hi, interval.full_circle, state.tool_rotation, state.tool_position)
 
     def __repr__(self) -> str:
         return f"Controller({self.robot.name!r}, strategy={self.config.strategy!r}, dt={self.config.dt})"

@@ -30,6 +30,7 @@ to about 1e-9 rad.  Excursions past a limit shorter than one step
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -323,8 +324,10 @@ def _crossing(
 
 def _walk(
     robot: Robot, q0: np.ndarray, ns0: float, direction: np.ndarray, target: pin.SE3, opt: NumericalOptions
-) -> tuple[float, Cause | None, np.ndarray]:
-    """Follow the self-motion from ``q0`` along ``direction``: unwrapped ns at the end, its cause, q there."""
+) -> Generator[None, None, tuple[float, Cause | None, np.ndarray]]:
+    """Follow the self-motion from ``q0`` along ``direction``, yielding after each step (a pose correction, the
+    limits, the arm angle and the next null-space direction) but the last: returns the unwrapped ns at the end,
+    its cause and q there."""
     q, ns, d = q0.copy(), ns0, direction
     for _ in range(opt.max_steps):
         q_new = _correct(robot, q + opt.step_rad * d, target, opt.pose_tol)
@@ -340,29 +343,67 @@ def _walk(
         q, d = q_new, d_new
         if abs(ns - ns0) >= TWO_PI:
             return ns, None, q
+        yield
     return ns, Cause("unfinished", -1), q  # max_steps reached: an end that is not a limit
 
 
+class NumericalWalk:
+    """The numerical continuity interval at ``q`` (rad) computed in pieces: :meth:`advance` takes at most a given
+    number of self-motion steps (``NumericalOptions.step_rad`` each) and returns the :class:`Interval` once both
+    walks have ended (None before).  The control tick of an arm without the closed form advances one a few steps
+    a tick (``ControllerConfig.interval_steps_per_tick``): a whole walk took 35 ms median on the Panda, every
+    ``interval_period`` ticks of a moving tool.  Raises SingularityError where the self-motion is undefined at
+    ``q`` (here) or JointLimitError for ``q`` outside its limits."""
+
+    def __init__(self, robot: Robot, q: object, options: NumericalOptions | None = None) -> None:
+        opt = options or NumericalOptions()
+        qv = robot.check_q(q)
+        self.q = qv
+        self.ns0 = arm_angle(robot, qv)
+        self.target = robot.tool_pose(qv)
+        grad = arm_angle_gradient(robot, qv)
+        d = _null_direction(robot, qv, grad, opt.sigma_min)
+        if d is None:
+            raise SingularityError("the tool Jacobian is singular at q: the self-motion is not defined")
+        if abs(d @ grad) < 1e-12:
+            raise SingularityError("the self-motion does not change the arm angle at q")
+        self.steps = 0
+        self._walks = self._both(robot, qv, d, opt)
+        self._result: Interval | None = None
+
+    def _both(
+        self, robot: Robot, qv: np.ndarray, d: np.ndarray, opt: NumericalOptions
+    ) -> Generator[None, None, Interval]:
+        ns0, target = self.ns0, self.target
+        hi, hi_c, hi_q = yield from _walk(robot, qv, ns0, d, target, opt)
+        if hi_c is None and hi - ns0 >= TWO_PI:
+            return Interval(ns0 - math.pi, ns0 + math.pi, True, "numerical")
+        yield  # (the first walk's last step was this call's step)
+        lo, lo_c, lo_q = yield from _walk(robot, qv, ns0, -d, target, opt)
+        if hi - lo > TWO_PI:
+            lo = hi - TWO_PI
+        return Interval(min(lo, ns0), max(hi, ns0), False, "numerical", lo_c, hi_c, lo_q, hi_q)
+
+    def advance(self, steps: float) -> Interval | None:
+        """At most ``steps`` more self-motion steps (``math.inf``: to the end); the interval once it is done."""
+        taken = 0
+        while self._result is None and taken < steps:
+            taken += 1
+            self.steps += 1
+            try:
+                next(self._walks)
+            except StopIteration as done:
+                self._result = done.value
+        return self._result
+
+
 def numerical_interval(robot: Robot, q: object, options: NumericalOptions | None = None) -> Interval:
-    """Continuity interval by following the self-motion numerically (any 7-DOF arm).
+    """Continuity interval by following the self-motion numerically (any 7-DOF arm): a
+    :class:`NumericalWalk` to its end.
 
     Accuracy: limit ends to ~1e-9 rad (exact crossing solve); singular ends to
     one step (``options.step_rad`` in joint space).
     """
-    opt = options or NumericalOptions()
-    qv = robot.check_q(q)
-    ns0 = arm_angle(robot, qv)
-    target = robot.tool_pose(qv)
-    grad = arm_angle_gradient(robot, qv)
-    d = _null_direction(robot, qv, grad, opt.sigma_min)
-    if d is None:
-        raise SingularityError("the tool Jacobian is singular at q: the self-motion is not defined")
-    if abs(d @ grad) < 1e-12:
-        raise SingularityError("the self-motion does not change the arm angle at q")
-    hi, hi_c, hi_q = _walk(robot, qv, ns0, d, target, opt)
-    if hi_c is None and hi - ns0 >= TWO_PI:
-        return Interval(ns0 - math.pi, ns0 + math.pi, True, "numerical")
-    lo, lo_c, lo_q = _walk(robot, qv, ns0, -d, target, opt)
-    if hi - lo > TWO_PI:
-        lo = hi - TWO_PI
-    return Interval(min(lo, ns0), max(hi, ns0), False, "numerical", lo_c, hi_c, lo_q, hi_q)
+    interval = NumericalWalk(robot, q, options).advance(math.inf)
+    assert interval is not None  # (a walk to the end has its interval)
+    return interval

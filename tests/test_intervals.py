@@ -168,6 +168,39 @@ def test_panda_numerical_interval_ends_are_limit_crossings() -> None:
                 assert np.all(q_end >= robot.q_min - 1e-9) and np.all(q_end <= robot.q_max + 1e-9)
 
 
+def test_a_walk_in_pieces_takes_the_steps_it_is_given_and_ends_where_a_whole_one_does(monkeypatch) -> None:
+    """``NumericalWalk.advance(k)`` takes at most k self-motion steps a call (each one pose correction, counted by
+    wrapping it; a step that ends at a limit adds its exact crossing's) and, whatever the pieces, ends with the
+    interval of ``numerical_interval``, ends and causes equal."""
+    robot = _panda()
+    rng = np.random.default_rng(4)
+    corrections = []
+    correct = I._correct
+
+    def counted(*args, **kwargs):
+        corrections.append(1)
+        return correct(*args, **kwargs)
+
+    for q, pieces in zip(_regular_qs(robot, rng, 3, margin=0.1), (1, 2, 7)):
+        whole = I.numerical_interval(robot, q)
+        walk = I.NumericalWalk(robot, q)
+        monkeypatch.setattr(I, "_correct", counted)
+        result, calls = None, 0
+        while result is None:
+            before = len(corrections)
+            result = walk.advance(pieces)
+            assert len(corrections) - before <= pieces + 1
+            calls += 1
+        monkeypatch.setattr(I, "_correct", correct)
+        assert walk.steps > 10 and calls == -(-walk.steps // pieces)  # every call but the last took all it was given
+        assert (result.lo, result.hi, result.lo_cause, result.hi_cause) == (
+            whole.lo,
+            whole.hi,
+            whole.lo_cause,
+            whole.hi_cause,
+        )
+
+
 @pytest.mark.parametrize("joint", [1, 5])
 @pytest.mark.parametrize("side", [1.0, -1.0])
 def test_a_singular_cut_ends_the_interval_and_is_named(robot: Robot, joint: int, side: float) -> None:

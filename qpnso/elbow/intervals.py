@@ -13,7 +13,8 @@ points, each arc's midpoint is tested against every limit, and neighbouring
 feasible arcs are merged unless a singular cut separates them.  Spurious roots
 (``θ = θ_limit + π`` of the tangent-type equations) only add cuts that merge
 away.  Tangent-type joints are represented in (-π, π]; limits beyond ±π are
-therefore never crossed.
+therefore never crossed.  The arithmetic is the kernels of :mod:`qpnso.elbow.closed_form` (the control
+tick's too); this module gives them their public form (:class:`Interval`, :class:`Cause`, the arcs).
 
 Arc convention: an arc is ``(lo, hi)`` with ``-π ≤ lo < π`` and
 ``lo < hi ≤ lo + 2π``; an arc crossing ±π is *not* split (its ``hi`` exceeds
@@ -24,7 +25,8 @@ in both directions with null-space steps and Newton pose correction; a limit
 crossing is then solved exactly (the crossing joint pinned at its limit, the
 other six solving the tool pose by Newton to 1e-12), so the ends are accurate
 to about 1e-9 rad.  Excursions past a limit shorter than one step
-(``NumericalOptions.step_rad``) can be missed.
+(``NumericalOptions.step_rad``) can be missed.  The walk can be taken in pieces
+(:class:`NumericalWalk`), as the control tick does.
 """
 
 from __future__ import annotations

@@ -12,8 +12,10 @@ the rotations ``R03`` (joints 1–3) and ``R47`` (joints 5–7) are affine in
 * joints 2, 6 are *cosine type*: ``s·acos(a·sin + b·cos + c)``;
 * joint 4 does not depend on ``ns``.
 
-Only atan2/acos forms are used (no half-angle formulas).  The arm angle ``ns``
-itself, its points and its gradient are in :mod:`qpnso.elbow.arm_angle`.
+Only atan2/acos forms are used (no half-angle formulas).  The coefficients are computed by the kernel
+:func:`qpnso.elbow.closed_form.self_motion_rows` on the geometry's record (:attr:`SrsGeometry.record`), the
+one implementation the control tick runs too.  The arm angle ``ns`` itself, its points and its gradient are in
+:mod:`qpnso.elbow.arm_angle`.
 """
 
 from __future__ import annotations

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Generator
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 import pinocchio as pin
@@ -72,6 +73,7 @@ TWO_PI = 2.0 * math.pi
 _MERGE_TOL = 1e-12
 _FEASIBLE_TOL = 1e-10
 _ALL_JOINTS = np.arange(7)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -283,8 +285,11 @@ def _pose_error(robot: Robot, q: np.ndarray, target: pin.SE3) -> np.ndarray:
     return np.concatenate([target.translation - cur.translation, pin.log3(target.rotation @ cur.rotation.T)])
 
 
-def _correct(robot: Robot, q: np.ndarray, target: pin.SE3, tol: float, free: np.ndarray | None = None) -> np.ndarray:
-    """Newton iterations on the tool pose, moving only the ``free`` joints."""
+def _newton(
+    robot: Robot, q: np.ndarray, target: pin.SE3, tol: float, free: np.ndarray | None = None
+) -> Generator[None, None, np.ndarray]:
+    """Newton iterations on the tool pose, moving only the ``free`` joints, yielding after each: returns the
+    corrected configuration (SingularityError if 30 do not reach 1e-9)."""
     cols = np.arange(robot.nq) if free is None else free
     q = q.copy()
     for _ in range(30):
@@ -293,9 +298,24 @@ def _correct(robot: Robot, q: np.ndarray, target: pin.SE3, tol: float, free: np.
             return q
         jac = robot.jacobian(q)[:, cols]
         q[cols] += np.linalg.lstsq(jac, err, rcond=None)[0]
+        yield
     if np.abs(_pose_error(robot, q, target)).max() > 1e-9:
         raise SingularityError("pose correction did not converge while following the self-motion")
     return q
+
+
+def _finished(pieces: Generator[None, None, T]) -> T:
+    """A generator of :class:`NumericalWalk`'s pieces run to its end: its return value."""
+    while True:
+        try:
+            next(pieces)
+        except StopIteration as done:
+            return done.value
+
+
+def _correct(robot: Robot, q: np.ndarray, target: pin.SE3, tol: float, free: np.ndarray | None = None) -> np.ndarray:
+    """Newton iterations on the tool pose, moving only the ``free`` joints (:func:`_newton`, at once)."""
+    return _finished(_newton(robot, q, target, tol, free))
 
 
 def _null_direction(robot: Robot, q: np.ndarray, prev: np.ndarray, sigma_min: float) -> np.ndarray | None:
@@ -309,8 +329,9 @@ def _null_direction(robot: Robot, q: np.ndarray, prev: np.ndarray, sigma_min: fl
 
 def _crossing(
     robot: Robot, q_in: np.ndarray, q_out: np.ndarray, target: pin.SE3, tol: float
-) -> tuple[np.ndarray, Cause]:
-    """Exact first limit crossing between a feasible and an infeasible configuration."""
+) -> Generator[None, None, tuple[np.ndarray, Cause]]:
+    """Exact first limit crossing between a feasible and an infeasible configuration (the crossing joint pinned
+    at its limit, the other six solving the pose: :func:`_newton`, yielding after each iteration)."""
     over = np.maximum(q_out - robot.q_max, 0) + np.maximum(robot.q_min - q_out, 0)
     frac = np.full(robot.nq, np.inf)
     for j in np.flatnonzero(over > 0):
@@ -320,7 +341,7 @@ def _crossing(
     bound = "max" if q_out[k] > robot.q_max[k] else "min"
     q = q_in + frac[k] * (q_out - q_in)
     q[k] = robot.q_max[k] if bound == "max" else robot.q_min[k]
-    q = _correct(robot, q, target, tol, free=np.delete(np.arange(robot.nq), k))
+    q = yield from _newton(robot, q, target, tol, free=np.delete(np.arange(robot.nq), k))
     return q, Cause("limit", k, bound)
 
 
@@ -328,14 +349,15 @@ def _walk(
     robot: Robot, q0: np.ndarray, ns0: float, direction: np.ndarray, target: pin.SE3, opt: NumericalOptions
 ) -> Generator[None, None, tuple[float, Cause | None, np.ndarray]]:
     """Follow the self-motion from ``q0`` along ``direction``, yielding after each step (a pose correction, the
-    limits, the arm angle and the next null-space direction) but the last: returns the unwrapped ns at the end,
-    its cause and q there."""
+    limits, the arm angle and the next null-space direction) and after each Newton iteration of a limit crossing's
+    exact solve, but the last: returns the unwrapped ns at the end, its cause and q there."""
     q, ns, d = q0.copy(), ns0, direction
     for _ in range(opt.max_steps):
         q_new = _correct(robot, q + opt.step_rad * d, target, opt.pose_tol)
         status = arm_angle_status(robot, q_new)
         if np.any(q_new > robot.q_max) or np.any(q_new < robot.q_min):
-            q_end, cause = _crossing(robot, q, q_new, target, opt.pose_tol)
+            yield  # (this step found the crossing; its exact solve is the next pieces)
+            q_end, cause = yield from _crossing(robot, q, q_new, target, opt.pose_tol)
             return ns + wrap(arm_angle_status(robot, q_end).value - ns), cause, q_end
         d_new = _null_direction(robot, q_new, d, opt.sigma_min)
         if d_new is None or not status.ok:
@@ -351,8 +373,9 @@ def _walk(
 
 class NumericalWalk:
     """The numerical continuity interval at ``q`` (rad) computed in pieces: :meth:`advance` takes at most a given
-    number of self-motion steps (``NumericalOptions.step_rad`` each) and returns the :class:`Interval` once both
-    walks have ended (None before).  The control tick of an arm without the closed form advances one a few steps
+    number of pieces — self-motion steps (``NumericalOptions.step_rad`` each) or Newton iterations of a limit
+    crossing's exact solve, 0.1–0.4 ms each on the Panda — and returns the :class:`Interval` once both walks have
+    ended (None before).  The control tick of an arm without the closed form advances one a few steps
     a tick (``ControllerConfig.interval_steps_per_tick``): a whole walk took 35 ms median on the Panda, every
     ``interval_period`` ticks of a moving tool.  Raises SingularityError where the self-motion is undefined at
     ``q`` (here) or JointLimitError for ``q`` outside its limits."""
@@ -387,7 +410,7 @@ class NumericalWalk:
         return Interval(min(lo, ns0), max(hi, ns0), False, "numerical", lo_c, hi_c, lo_q, hi_q)
 
     def advance(self, steps: float) -> Interval | None:
-        """At most ``steps`` more self-motion steps (``math.inf``: to the end); the interval once it is done."""
+        """At most ``steps`` more pieces (``math.inf``: to the end); the interval once it is done."""
         taken = 0
         while self._result is None and taken < steps:
             taken += 1

@@ -168,31 +168,34 @@ def test_panda_numerical_interval_ends_are_limit_crossings() -> None:
                 assert np.all(q_end >= robot.q_min - 1e-9) and np.all(q_end <= robot.q_max + 1e-9)
 
 
-def test_a_walk_in_pieces_takes_the_steps_it_is_given_and_ends_where_a_whole_one_does(monkeypatch) -> None:
-    """``NumericalWalk.advance(k)`` takes at most k self-motion steps a call (each one pose correction, counted by
-    wrapping it; a limit crossing's exact solve is pieces of its own, one Newton iteration each) and, whatever the
-    pieces, ends with the interval of ``numerical_interval``, ends and causes equal."""
+def test_a_walk_in_pieces_takes_the_pieces_it_is_given_and_ends_where_a_whole_one_does(monkeypatch) -> None:
+    """``NumericalWalk.advance(k)`` does at most k pieces of work a call — each at most one tool Jacobian (a Newton
+    iteration of a pose correction or of a limit crossing's exact solve, or a step's SVD), counted by wrapping
+    ``robot.jacobian`` — and, whatever the pieces, ends with the interval of ``numerical_interval``, ends and
+    causes equal."""
     robot = _panda()
     rng = np.random.default_rng(4)
-    corrections = []
-    correct = I._correct
+    jacobians = []
+    jacobian = robot.jacobian
 
-    def counted(*args, **kwargs):
-        corrections.append(1)
-        return correct(*args, **kwargs)
+    def counted(q):
+        jacobians.append(1)
+        return jacobian(q)
 
     for q, pieces in zip(_regular_qs(robot, rng, 3, margin=0.1), (1, 2, 7)):
         whole = I.numerical_interval(robot, q)
         walk = I.NumericalWalk(robot, q)
-        monkeypatch.setattr(I, "_correct", counted)
+        monkeypatch.setattr(robot, "jacobian", counted)
         result, calls = None, 0
         while result is None:
-            before = len(corrections)
+            before = len(jacobians)
             result = walk.advance(pieces)
-            assert len(corrections) - before <= pieces
+            assert len(jacobians) - before <= pieces
             calls += 1
-        monkeypatch.setattr(I, "_correct", correct)
+        monkeypatch.setattr(robot, "jacobian", jacobian)
         assert walk.steps > 10 and calls == -(-walk.steps // pieces)  # every call but the last took all it was given
+        assert len(jacobians) > walk.steps / 2  # (the count sees the walk's work: not vacuous)
+        jacobians.clear()
         assert (result.lo, result.hi, result.lo_cause, result.hi_cause) == (
             whole.lo,
             whole.hi,

@@ -98,8 +98,8 @@ class ControllerConfig:
     elbow_up_angle_deg: float = 0.0  # arm angle the elbow-up strategy holds
     interval_period: int = 10  # ticks between interval updates while the tool moves
     interval_steps_per_tick: int = 1  # an arm without the closed form (the Panda): pieces of its numerical
-    # continuity interval per tick (NumericalWalk: a self-motion step or a Newton iteration of a limit crossing,
-    # 0.1-0.4 ms each; a whole walk took 35 ms median)
+    # continuity interval per tick (NumericalWalk: a Newton iteration or the rest of a self-motion step, about
+    # 0.1 ms each; a whole walk took 35 ms median)
     q_limit_tolerance_deg: float = 2.0  # deg (>= 0): how far outside its limits a measured joint
     # may be and still be brought back (Status.Q_OUT_OF_LIMITS); beyond it the tick raises
     recovery_speed: float = 0.2  # rad/s (> 0): the largest speed bringing a joint back inside its limits

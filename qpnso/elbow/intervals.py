@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 from collections.abc import Generator
 from dataclasses import dataclass, field
-from typing import TypeVar
 
 import numpy as np
 import pinocchio as pin
@@ -73,7 +72,6 @@ TWO_PI = 2.0 * math.pi
 _MERGE_TOL = 1e-12
 _FEASIBLE_TOL = 1e-10
 _ALL_JOINTS = np.arange(7)
-T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -304,20 +302,6 @@ def _newton(
     return q
 
 
-def _finished(pieces: Generator[None, None, T]) -> T:
-    """A generator of :class:`NumericalWalk`'s pieces run to its end: its return value."""
-    while True:
-        try:
-            next(pieces)
-        except StopIteration as done:
-            return done.value
-
-
-def _correct(robot: Robot, q: np.ndarray, target: pin.SE3, tol: float, free: np.ndarray | None = None) -> np.ndarray:
-    """Newton iterations on the tool pose, moving only the ``free`` joints (:func:`_newton`, at once)."""
-    return _finished(_newton(robot, q, target, tol, free))
-
-
 def _null_direction(robot: Robot, q: np.ndarray, prev: np.ndarray, sigma_min: float) -> np.ndarray | None:
     """Unit null-space direction of the tool Jacobian, oriented like ``prev``; None if singular."""
     _, s, vt = np.linalg.svd(robot.jacobian(q))
@@ -348,12 +332,12 @@ def _crossing(
 def _walk(
     robot: Robot, q0: np.ndarray, ns0: float, direction: np.ndarray, target: pin.SE3, opt: NumericalOptions
 ) -> Generator[None, None, tuple[float, Cause | None, np.ndarray]]:
-    """Follow the self-motion from ``q0`` along ``direction``, yielding after each step (a pose correction, the
-    limits, the arm angle and the next null-space direction) and after each Newton iteration of a limit crossing's
-    exact solve, but the last: returns the unwrapped ns at the end, its cause and q there."""
+    """Follow the self-motion from ``q0`` along ``direction``, yielding after each Newton iteration of a step's
+    pose correction or of a limit crossing's exact solve and after each step (the limits, the arm angle and the
+    next null-space direction), but the last: returns the unwrapped ns at the end, its cause and q there."""
     q, ns, d = q0.copy(), ns0, direction
     for _ in range(opt.max_steps):
-        q_new = _correct(robot, q + opt.step_rad * d, target, opt.pose_tol)
+        q_new = yield from _newton(robot, q + opt.step_rad * d, target, opt.pose_tol)
         status = arm_angle_status(robot, q_new)
         if np.any(q_new > robot.q_max) or np.any(q_new < robot.q_min):
             yield  # (this step found the crossing; its exact solve is the next pieces)
@@ -373,12 +357,13 @@ def _walk(
 
 class NumericalWalk:
     """The numerical continuity interval at ``q`` (rad) computed in pieces: :meth:`advance` takes at most a given
-    number of pieces — self-motion steps (``NumericalOptions.step_rad`` each) or Newton iterations of a limit
-    crossing's exact solve, 0.1–0.4 ms each on the Panda — and returns the :class:`Interval` once both walks have
-    ended (None before).  The control tick of an arm without the closed form advances one a few steps
-    a tick (``ControllerConfig.interval_steps_per_tick``): a whole walk took 35 ms median on the Panda, every
-    ``interval_period`` ticks of a moving tool.  Raises SingularityError where the self-motion is undefined at
-    ``q`` (here) or JointLimitError for ``q`` outside its limits."""
+    number of pieces — one Newton iteration of a self-motion step's pose correction or of a limit crossing's exact
+    solve, or the rest of a step (``NumericalOptions.step_rad`` each: the limits, the arm angle, an SVD), about
+    0.1 ms each on the Panda — and returns the :class:`Interval` once both walks have ended (None before).  The
+    control tick of an arm without the closed form advances one a few pieces a tick
+    (``ControllerConfig.interval_steps_per_tick``): a whole walk took 35 ms median on the Panda, and was renewed
+    inside a tick every ``interval_period`` ticks of a moving tool.  Raises SingularityError where the self-motion
+    is undefined at ``q`` (here) or JointLimitError for ``q`` outside its limits."""
 
     def __init__(self, robot: Robot, q: object, options: NumericalOptions | None = None) -> None:
         opt = options or NumericalOptions()

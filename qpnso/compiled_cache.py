@@ -44,11 +44,11 @@ log = logging.getLogger(__name__)
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 
-NUMBA_COLD_SECONDS = 40.0
+NUMBA_COLD_SECONDS = 70.0
 """s: compiling every kernel the control tick uses, once per machine and kernel sources (measured:
-``Controller(load_robot('lwr4p'))`` with empty caches and ``QPNSO_COMPILE=off``: 34.5–38.0 s of CPU on this
-2-core machine with the other core busy, since the tick's cascade stopped compiling the Level API's line
-kernels; 62 s before issue 15, docs/benchmarks.md *One tick path*)."""
+``Controller(load_robot('lwr4p'))`` with empty caches and ``QPNSO_COMPILE=off``: 71.3 s of CPU on this 2-core
+machine since the general cascade and the continuity interval are compiled (34.5–38.0 s before them);
+docs/benchmarks.md, issue 16's cold start)."""
 
 C_BYTES_PER_SECOND = 25_000.0
 """Bytes of CasADi-generated C that ``cc -O1`` compiles per second (measured for the LWR4+'s three

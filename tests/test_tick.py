@@ -501,6 +501,38 @@ def test_a_numerical_interval_is_walked_a_few_steps_a_tick(robots, monkeypatch) 
         )
 
 
+@pytest.mark.skipif(not HAS_PANDA, reason="the Panda's model is not installed")
+def test_a_numerical_walk_that_fails_marks_the_interval_stale_and_starts_again(robots, monkeypatch) -> None:
+    """A walk that raises (the self-motion singular on the way) is dropped: the last interval stands, flagged
+    ``INTERVAL_STALE``, until a new walk, started later, ends."""
+    from qpnso.elbow.intervals import NumericalWalk
+
+    robot = robots["panda"]
+    ctrl = Controller(robot, ControllerConfig(strategy="qp", interval_period=1, interval_steps_per_tick=50))
+    q = robot.sample_configuration()
+    ctrl.reset(q)
+    twist = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.1])
+    advance = NumericalWalk.advance
+
+    def singular(self, steps):
+        raise qpnso.SingularityError("test: the self-motion is singular here")
+
+    monkeypatch.setattr(NumericalWalk, "advance", singular)
+    first = ctrl.step(q, tool_twist=twist)
+    assert not first.status & Status.INTERVAL_STALE  # (the reset's interval, still fresh)
+    q = q + DT * first.dq
+    failed = ctrl.step(q, tool_twist=twist)
+    assert failed.status & Status.INTERVAL_STALE and ctrl._walk is None
+    assert failed.interval == pytest.approx(first.interval, abs=1e-12)  # the last one stands
+    monkeypatch.setattr(NumericalWalk, "advance", advance)
+    stale = []
+    for _ in range(400):
+        cmd = ctrl.step(q, tool_twist=twist)
+        stale.append(bool(cmd.status & Status.INTERVAL_STALE))
+        q = q + DT * cmd.dq
+    assert stale[0] and not stale[-1]  # renewed again once a new walk ended
+
+
 def test_nan_q_is_refused_before_anything_advances(robot) -> None:
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
     ctrl.reset(Q0)

@@ -59,7 +59,7 @@ from qpnso.control.tick import (
     stop_tick,
     tick_dtype,
 )
-from qpnso.elbow.intervals import NumericalWalk, closed_form_applies, continuity_interval
+from qpnso.elbow.intervals import NumericalWalk, continuity_interval
 from qpnso.errors import ConfigError, InputError, QpnsoError
 from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar, tick_vector
@@ -160,7 +160,6 @@ class Controller:
         self._command_views = (command["dq"][0], command["q_des"][0], command["tau"][0])
         self._ref = (memory["ref_R"][0], memory["ref_p"][0])  # views (reset rewrites the memory in place)
         self.strategy = make_strategy(cfg.strategy, self)
-        self._closed_form = closed_form_applies(robot)
         self._reset_done = False
         self._warm_up()
 
@@ -206,7 +205,8 @@ class Controller:
         self._dq_prev = np.zeros(self.robot.nq)
         self._twist_prev = np.zeros(6)  # m/s, rad/s: the previous tick's tool twist (its change is predicted)
         self._walk: NumericalWalk | None = None  # an arm without the closed form: its interval's walk under way
-        if not self._closed_form:  # its first interval here, whole (a reset is no tick): the first tick has it
+        if not self.records.params[0]["closed_form_interval"]:  # its first interval here, whole (a reset is no
+            # tick): the first tick has it
             self._first_interval(q, state)
         self.qp.reset()  # warm starts and solver objects: a reset controller answers as a new one
         self.strategy.reset(q, state)
@@ -290,6 +290,7 @@ class Controller:
             self._refuse_q(qv)  # raises, naming the entries or the joint
         if code == TICK_TWIST_NOT_FINITE:
             as_vector(twist, 6, "tool_twist")  # raises, naming the entries
+            raise InputError("tool_twist contains NaN or inf")  # (never reached: the kernel and as_vector agree)
         if code == TICK_STATE_NOT_FINITE:
             bits = int(rec.report[0]["bits"])
             return self._stop(qv, state[0]["g"].copy(), bits, t0, "the arm's state is not finite")
@@ -403,18 +404,16 @@ class Controller:
         (:func:`qpnso.control.memory.interval_failed`)."""
         m = self.records.memory[0]
         try:
-            if self._walk is None:
-                self._walk = NumericalWalk(self.robot, q)
-                s = state[0]
-                self._walk_pose = (s["R"].copy(), s["p"].copy())
-            interval = self._walk.advance(self.config.interval_steps_per_tick)
+            walk = self._walk = self._walk or NumericalWalk(self.robot, q)
+            interval = walk.advance(self.config.interval_steps_per_tick)
         except QpnsoError:
             self._walk = None
             interval_failed(m)
             return
         if interval is not None:
             self._walk = None
-            store_interval(m, interval.lo, interval.hi, interval.full_circle, *self._walk_pose)
+            T = walk.target  # (the tool pose the walk started at, Pinocchio's)
+            store_interval(m, interval.lo, interval.hi, interval.full_circle, T.rotation, T.translation)
 
     def _first_interval(self, q: np.ndarray, state) -> None:
         """A run's first continuity interval of an arm without the closed form, at ``q`` whole (35 ms median on

@@ -86,6 +86,7 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 
     from qpnso.control.strategies import filter_alpha
 
     cfg, ec = config, config.elbow()
+    closed_form = closed_form_applies(robot)
     tolerance = math.radians(cfg.q_limit_tolerance_deg)
     limit = np.array(robot.tau_limit, dtype=float)
     values = dict(
@@ -111,7 +112,7 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 
         wrist_sin_min=float(np.sin(np.radians(WRIST_CONE_DEG))),
         elbow_offset_min=ELBOW_OFFSET_MIN_M,
         interval_period=cfg.interval_period,
-        closed_form_interval=float(closed_form_applies(robot)),
+        closed_form_interval=float(closed_form),
         tool_moved_tol=TOOL_MOVED_TOL,
         q_check_lo=robot.q_min - Q_CHECK_WIDENING,
         q_check_hi=robot.q_max + Q_CHECK_WIDENING,
@@ -139,6 +140,6 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 
             field[: np.size(value)] = value  # (the rows first; the room after them unused)
         else:
             params[name] = value
-    if closed_form_applies(robot):
+    if closed_form:
         params["srs"] = srs_geometry(robot).record  # the arm's geometry for the tick's interval kernel
     return params

@@ -63,10 +63,10 @@ from the symmetric part by 1e-15 from here to π, measured against ``pinocchio.e
 
 TICK_READY, TICK_NOT_FINITE, TICK_Q_REFUSED, TICK_STATE_NOT_FINITE, TICK_NEED_INTERVAL, TICK_TWIST_NOT_FINITE = range(6)
 """Codes of :func:`begin_tick`: the problem is ready; ``q`` has a NaN or an infinite entry, or is beyond
-its limits by more than the accepted tolerance, or the tool twist has a NaN or an infinite entry (the last
-code; nothing done: the caller raises); the state at ``q`` is not
-finite (nothing done: the caller stops the joints); the continuity interval is due and has no closed form
-(the memory advanced: the caller renews it numerically, then calls :func:`begin_tick` again)."""
+its limits by more than the accepted tolerance (nothing done: the caller raises); the state at ``q`` is not
+finite (the caller stops the joints); the continuity interval is due and has no closed form (the memory
+advanced: the caller renews it numerically, then calls :func:`begin_tick` again); the tool twist has a NaN
+or an infinite entry (nothing done: the caller raises)."""
 
 TOOL_RESIDUAL_REPORTED = 1e-6
 """m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop

@@ -24,6 +24,8 @@ import math
 import numpy as np
 from numba import njit
 
+from qpnso.linalg import matmul
+
 TWO_PI = 2.0 * math.pi
 SINGULAR_TOL = 1e-12
 """A cosine-type joint whose ``cos θ`` reaches 1 − SINGULAR_TOL passes through 0 (singular cut)."""
@@ -90,16 +92,10 @@ def self_motion_rows(G, R, p, s2, s4, s6, num, den, sign):
     the wrist's rotation) are affine in ``(sin ns, cos ns, 1)``; their last columns and rows give the Z-Y-Z
     angles ``qa = σa·atan2(sb·M12, sb·M02)``, ``qb = s·acos(M22)``, ``qc = σc·atan2(sb·M21, −sb·M20)``.
     Returns ``(code, q4, dist)``: :data:`SRS_OK` or why not, joint 4 (rad), the shoulder–wrist distance (m)."""
-    S, W, axis = G.shoulder_from_world, G.tool_to_wrist, G.axis_sign
-    l1, l2 = G.upper_arm_m, G.forearm_m
-    a = np.empty((3, 4))  # [T | p_sw] in the shoulder frame: S·[R p; 0 1]·W
-    for i in range(3):
-        row = np.empty(4)  # (S·H)[i]
-        for j in range(3):
-            row[j] = S[i, 0] * R[0, j] + S[i, 1] * R[1, j] + S[i, 2] * R[2, j]
-        row[3] = S[i, 0] * p[0] + S[i, 1] * p[1] + S[i, 2] * p[2] + S[i, 3]
-        for j in range(4):
-            a[i, j] = row[0] * W[0, j] + row[1] * W[1, j] + row[2] * W[2, j] + row[3] * W[3, j]
+    axis, l1, l2 = G.axis_sign, G.upper_arm_m, G.forearm_m
+    H = np.zeros((4, 4))  # the tool pose, homogeneous
+    H[:3, :3], H[:3, 3], H[3, 3] = R, p, 1.0
+    a = matmul(matmul(G.shoulder_from_world, H), G.tool_to_wrist)  # [T | p_sw] in the shoulder frame
     dist = math.sqrt(a[0, 3] ** 2 + a[1, 3] ** 2 + a[2, 3] ** 2)
     if dist > l1 + l2 or dist < abs(l1 - l2):
         return SRS_UNREACHABLE, 0.0, dist

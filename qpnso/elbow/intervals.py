@@ -368,7 +368,6 @@ class NumericalWalk:
     def __init__(self, robot: Robot, q: object, options: NumericalOptions | None = None) -> None:
         opt = options or NumericalOptions()
         qv = robot.check_q(q)
-        self.q = qv
         self.ns0 = arm_angle(robot, qv)
         self.target = robot.tool_pose(qv)
         grad = arm_angle_gradient(robot, qv)

@@ -70,8 +70,12 @@ class Fuzzer:
         ``solve_time_max`` of solver CPU time again.  A slow tick that the code causes is slow every time; one
         that the machine causes (another process, the hypervisor) is not."""
         cfg, rep = self.config, self.report
+        replays: dict[tuple[int, str], list[dict[int, float]]] = {}  # (episode, strategy) → each replay's slow ticks
         for where, _ in rep.slow:
-            again = [self._replayed_slow_ticks(where) for _ in range(cfg.replays)]
+            key = (where.episode, where.strategy)
+            if key not in replays:  # (an episode with several slow ticks is replayed once for all of them)
+                replays[key] = [self._replayed_slow_ticks(where) for _ in range(cfg.replays)]
+            again = replays[key]
             if cfg.replays and all(where.tick in ticks for ticks in again):
                 rep.record("solve_time_reproduced", again[-1][where.tick], where, {}, f"reproduced in {cfg.replays}")
 

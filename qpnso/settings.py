@@ -60,7 +60,7 @@ class SettingError(ConfigError):
     def within(self, table: str = "", where: str | None = None) -> SettingError:
         """The same error seen from an enclosing table ``table`` (the key becomes
         ``table.key``) and, if given, from ``where`` (a class or file)."""
-        key = ".".join(part for part in (table, self.key) if part)
+        key = ".".join(part for part in (table, self.key) if part).replace(".[", "[")
         return SettingError(self.where if where is None else where, key, self.problem, self.value)
 
 
@@ -154,7 +154,10 @@ def _field_value(hint: Any, value: Any, key: str, where: str) -> Any:
             return build(value)
         except SettingError as exc:
             raise exc.within(key, where) from None
-    converted = _convert(hint, value)
+    try:
+        converted = _convert(hint, value)
+    except SettingError as exc:  # (an item of a list of settings tables: built by its class)
+        raise exc.within(key, where) from None
     if converted is _BAD:
         raise SettingError(where, key, f"expected {_describe(hint)}, got {type(value).__name__}", show(value))
     return converted
@@ -188,7 +191,7 @@ def _convert(hint: Any, value: Any) -> Any:
         items = args[:1] * len(value) if len(args) == 2 and args[1] is Ellipsis else args
         if len(items) != len(value):
             return _BAD
-        converted = tuple(_convert(arm, v) for arm, v in zip(items, value))
+        converted = tuple(_item(arm, v, i) for i, (arm, v) in enumerate(zip(items, value)))
         return _BAD if any(v is _BAD for v in converted) else converted
     if isinstance(value, np.generic):  # NumPy scalars as Python numbers (np.float64 is a float, too)
         value = value.item()
@@ -207,6 +210,19 @@ def _convert(hint: Any, value: Any) -> Any:
     if hint in (float, int):
         return _BAD
     raise TypeError(f"qpnso.settings: unsupported field type {hint!r}")
+
+
+def _item(hint: Any, value: Any, i: int) -> Any:
+    """Item ``i`` of a list as type ``hint``: a table built by the settings class's ``from_dict`` (a
+    :class:`SettingError` names the item), else :func:`_convert`."""
+    if _is_dataclass_hint(hint) and isinstance(value, Mapping) and hasattr(hint, "from_dict"):
+        try:
+            return hint.from_dict(value)
+        except SettingError as exc:
+            raise SettingError(
+                exc.where, f"[{i}]" + ("." + exc.key if exc.key else ""), exc.problem, exc.value
+            ) from None
+    return _convert(hint, value)
 
 
 def _is_dataclass_hint(hint: Any) -> TypeGuard[type]:

@@ -8,6 +8,7 @@ names them for users.
 from __future__ import annotations
 
 import enum
+import math
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -20,6 +21,7 @@ from qpnso.control.flags import (
     FLAG_ELBOW_SLACK,
     FLAG_INTERNAL_ERROR,
     FLAG_INTERVAL_STALE,
+    FLAG_OBSTACLE,
     FLAG_Q_OUT_OF_LIMITS,
     FLAG_QP_DEADLINE,
     FLAG_QP_FAILED,
@@ -30,6 +32,7 @@ from qpnso.control.flags import (
 )
 from qpnso.elbow.rom import ElbowConfig
 from qpnso.model.costs import CostWeights
+from qpnso.model.obstacles import Obstacle
 from qpnso.qp import QPSettings
 from qpnso.settings import SettingError, check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
@@ -55,6 +58,8 @@ class Status(enum.Flag):
     ELBOW_OUTSIDE_ROM = FLAG_ELBOW_OUTSIDE_ROM  # the arm angle is outside ROM_t this tick
     INTERNAL_ERROR = FLAG_INTERNAL_ERROR  # a tick could not be computed: joints stopped, τ = g(q)
     QP_DEADLINE = FLAG_QP_DEADLINE  # the cascade's time budget was spent: lower levels skipped (with QP_FAILED)
+    OBSTACLE = FLAG_OBSTACLE  # a link cannot keep its margin from an obstacle (the tool's motion forces it) or
+    # overlaps it: Command.clearance and the message say which
 
 
 @dataclass
@@ -111,6 +116,13 @@ class ControllerConfig:
     # lower level that would overrun it does not start (Status.QP_DEADLINE, tool held); None: no budget, answers
     # independent of timing (HierarchicalQP.solve's time_budget; README "Real-time use" gives the measurement)
     compile: str | None = None  # CasADi evaluation: background|sync|off (codegen.py)
+    obstacles: tuple[Obstacle, ...] = ()  # keep-out volumes, world frame: qpnso.Sphere, Capsule, Box (or their
+    # tables, [[obstacles]] in TOML); movable between ticks (Controller.set_obstacles)
+    obstacle_margin: float = 0.03  # m, d_s: the clearance every link capsule keeps from every obstacle
+    obstacle_influence: float = 0.15  # m, d_i: a link–obstacle pair nearer than this has a row in level 2
+    obstacle_speed: float = 0.5  # m/s, ξ: the approach speed the rows' damper allows at d_i (0 at d_s)
+    obstacle_recovery_speed: float = 0.05  # m/s: the largest speed of a link back out of the margin
+    obstacle_weight_ratio: float = 100.0  # the obstacle rows' slack weight over the elbow rows' (slack_weight)
 
     def __post_init__(self) -> None:
         """Types first (:func:`qpnso.settings.check`: ``weights``/``qp_settings`` may be dicts),
@@ -138,6 +150,9 @@ class ControllerConfig:
             "recovery_speed",
             "pose_correction_speed",
             "pose_correction_angular_speed",
+            "obstacle_speed",
+            "obstacle_recovery_speed",
+            "obstacle_weight_ratio",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -155,6 +170,10 @@ class ControllerConfig:
             raise out_of_range(self, "interval_steps_per_tick", "must be >= 1 step")
         if self.dq_tolerance_factor < 1:
             raise out_of_range(self, "dq_tolerance_factor", "must be >= 1")
+        if not 0 <= self.obstacle_margin < self.obstacle_influence:
+            raise out_of_range(self, "obstacle_margin", "must be >= 0 m and below obstacle_influence")
+        if self.obstacle_speed / (self.obstacle_influence - self.obstacle_margin) * self.dt > 1.0:
+            raise out_of_range(self, "obstacle_speed", "must be <= (obstacle_influence - obstacle_margin)/dt")
         if self.solver_time_budget is not None and not self.solver_time_budget > 0:
             raise out_of_range(self, "solver_time_budget", "must be > 0 s or None")
 
@@ -166,8 +185,9 @@ class ControllerConfig:
         return settings_from_dict(cls, values, where)
 
     def to_dict(self) -> dict:
-        """Plain data (nested settings as dicts); ``from_dict(to_dict())`` gives an equal config."""
-        return asdict(self)
+        """Plain data (nested settings as dicts, obstacles as their tables); ``from_dict(to_dict())`` gives an
+        equal config."""
+        return asdict(self) | {"obstacles": [ob.to_dict() for ob in self.obstacles]}
 
     def elbow(self) -> ElbowConfig:
         """The ROM/stiffness settings as :class:`qpnso.elbow.rom.ElbowConfig`."""
@@ -199,6 +219,7 @@ class Command:
     tick_time: float  # s, the whole step()
     tool_error: tuple[float, float]  # (m, rad) pose error before this tick's correction
     message: str = ""
+    clearance: float = math.inf  # m: the least distance of a link capsule to an obstacle (inf: no obstacle)
 
     @property
     def ok(self) -> bool:

@@ -37,6 +37,7 @@ from qpnso.control.flags import (
     ELBOW_BITS,
     FLAG_ELBOW_DROPPED,
     FLAG_INTERNAL_ERROR,
+    FLAG_OBSTACLE,
     FLAG_QP_DEADLINE,
     FLAG_QP_FAILED,
     PREDICTION_MISSED,
@@ -45,6 +46,7 @@ from qpnso.control.memory import interval_failed, new_memory, store_interval
 from qpnso.control.params import tick_params
 from qpnso.control.rows import RowKind
 from qpnso.control.rows.kind import row_counts
+from qpnso.control.rows.obstacles import OBSTACLE_ROW_ROOM
 from qpnso.control.state import StateEvaluator, sanitize_state
 from qpnso.control.tick import (
     TICK_NEED_INTERVAL,
@@ -59,9 +61,12 @@ from qpnso.control.tick import (
     stop_tick,
     tick_dtype,
 )
+from qpnso.elbow.clearance import OBSTACLE_ROOM, set_obstacles
 from qpnso.elbow.intervals import NumericalWalk, continuity_interval
 from qpnso.errors import ConfigError, InputError, QpnsoError
+from qpnso.model.collision import has_capsules, link_capsules
 from qpnso.model.costs import CostModel
+from qpnso.model.obstacles import Obstacle, as_obstacles
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar, tick_vector
 from qpnso.qp import HierarchicalQP
 from qpnso.qp.problem import STOPPED, new_problem
@@ -132,7 +137,10 @@ class Controller:
         self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed, compile=cfg.compile)
         _, _, self._hard_room, self._soft_room = row_counts(self.rows, robot)
         room = self._hard_room + self._soft_room
-        self.evaluate = StateEvaluator(self.cost, compile=cfg.compile, rows=self.rows, room=room)
+        self.capsules = link_capsules(robot) if has_capsules(robot) or cfg.obstacles else None
+        self.evaluate = StateEvaluator(
+            self.cost, compile=cfg.compile, rows=self.rows, room=room, capsules=self.capsules
+        )
         self.elbow_config = cfg.elbow()
         self.qp = HierarchicalQP(robot.nq, backend=cfg.qp_backend, settings=cfg.qp_settings)
         n = robot.nq
@@ -140,9 +148,14 @@ class Controller:
         self._time_budget = cfg.solver_time_budget
         self._no_twist = np.zeros(6)  # never written (writable: a read-only array is another Numba type)
         hard_room, soft_room = self._hard_room, self._soft_room
-        self.tick = tick = new_record(tick_dtype(n, hard_room + soft_room, hard_room, soft_room))
-        tick["params"] = tick_params(robot, cfg, self.rows, hard_room + soft_room)
-        tick["problem"] = new_problem(n, hard_room, 1 + soft_room)
+        caps = self.capsules
+        points, count = (caps.points_count, caps.count) if caps else (0, 0)
+        self._obstacle_room = max(OBSTACLE_ROOM, len(cfg.obstacles)) if caps else 0
+        problem_soft = soft_room + (OBSTACLE_ROW_ROOM if caps else 0)  # (the keep-out rows are soft rows too)
+        self.tick = tick = new_record(tick_dtype(n, room, hard_room, problem_soft, points, count, self._obstacle_room))
+        tick["params"] = tick_params(robot, cfg, self.rows, room, caps, self._obstacle_room)
+        tick["problem"] = new_problem(n, hard_room, 1 + problem_soft)
+        self.obstacles = tuple(cfg.obstacles)
         self.evaluate.bind(tick["state"])
         self.records = TickRecords(
             tick,
@@ -212,6 +225,19 @@ class Controller:
         self.strategy.reset(q, state)
         self._reset_done = True
         self.step_count = 0
+
+    def set_obstacles(self, obstacles: Sequence[Obstacle]) -> None:
+        """Move, add or remove the keep-out volumes (world frame, m) between ticks: from the next tick the rows
+        keep the links from these, and the continuity interval is renewed against them.  At most the room
+        the controller was built with (``max(8, len(config.obstacles))``); a :class:`qpnso.settings.SettingError`
+        names what is wrong, and nothing changes."""
+        if self.capsules is None:
+            raise ConfigError(f"{self.robot.name}: no link capsules (models/collision.json): obstacles not supported")
+        checked = as_obstacles(obstacles)
+        set_obstacles(self.records.params["geo"], checked)
+        self.obstacles = checked
+        self.records.memory[0]["iv_age"] = math.inf  # (renewed at the next tick, against these)
+        self.records.memory[0]["iv_p"][:] = math.inf  # (a held tool renews it too: its pose "moved")
 
     @property
     def ns0(self) -> float:
@@ -350,9 +376,18 @@ class Controller:
             solve_time,
             0.0,
             (r.e_pos, r.e_rot),
-            message,
+            message or (self._obstacle_message(r) if bits & FLAG_OBSTACLE else ""),
+            r.clearance,
         )
         return _stamped(cmd, bits, t0)
+
+    def _obstacle_message(self, r: Report) -> str:
+        """What ``OBSTACLE`` means this tick: which link, how near which obstacle."""
+        link = self.capsules.names[r.clear_capsule] if self.capsules and r.clear_capsule >= 0 else "a link"
+        return (
+            f"obstacle: {link} is {r.clearance:.4f} m from obstacle {r.clear_obstacle} (margin "
+            f"{self.config.obstacle_margin:g} m) and the tool's motion leaves no way round it"
+        )
 
     def _refuse_q(self, qv: np.ndarray) -> None:
         """Raise :class:`InputError` naming the first joint beyond its limits by more than

@@ -13,6 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
+from qpnso.elbow.clearance import clear_interval
 from qpnso.elbow.closed_form import SRS_OK, branch_signs, srs_interval
 from qpnso.elbow.rom import clipped_bounds, sigmoid_stiffness
 from qpnso.records import new_record
@@ -80,12 +81,17 @@ def store_interval(m, lo, hi, full_circle, R, p):
 def renew_interval(q, q_within, s, m, P):
     """The continuity interval [E 9] renewed in the memory record ``m`` at the state ``s`` (its tool pose, the
     memory's arm angle ``m.ns``) by the closed form (:func:`qpnso.elbow.closed_form.srs_interval`; the arm's
-    geometry ``P.srs``) — or, when ``q`` (rad) is not ``q_within`` its limits, its branch is undefined (joint
+    geometry ``P.srs``), cut where a link would come within the margin of an obstacle
+    (:func:`qpnso.elbow.clearance.clear_interval`, the keep-out record ``P.geo``) — or, when ``q`` (rad) is not ``q_within`` its limits, its branch is undefined (joint
     2, 4 or 6 exactly 0) or the closed form has none, marked failed (:func:`interval_failed`)."""
     s2, s4, s6, defined = branch_signs(q)
     if q_within and defined:
         code, lo, hi, full, _, _, _ = srs_interval(P.srs, s.R, s.p, s2, s4, s6, m.ns, P.q_min, P.q_max)
         if code == SRS_OK:
+            below, above = (math.inf, math.inf) if full else (m.ns - lo, hi - m.ns)
+            below, above, lo_cut, hi_cut = clear_interval(P.geo, s.points, below, above)
+            if lo_cut or hi_cut:
+                lo, hi, full = m.ns - below, m.ns + above, False
             store_interval(m, lo, hi, full, s.R, s.p)
             return
     interval_failed(m)

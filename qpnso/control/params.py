@@ -12,9 +12,11 @@ import numpy as np
 
 from qpnso.control.rows import RowKind
 from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
+from qpnso.elbow.clearance import KeepOut, keep_out_dtype, keep_out_record
 from qpnso.elbow.closed_form import srs_dtype
 from qpnso.elbow.intervals import closed_form_applies
 from qpnso.elbow.srs import srs_geometry
+from qpnso.model.collision import LinkCapsules
 from qpnso.model.robot import Robot
 from qpnso.records import new_record
 
@@ -67,8 +69,9 @@ _VECTORS = (
 )
 
 
-def params_dtype(n: int, rows: int = 0) -> np.dtype:
-    """The record type of :func:`tick_params` for ``n`` joints and ``rows`` rows of row kinds."""
+def params_dtype(n: int, rows: int = 0, points: int = 0, capsules: int = 0, obstacles: int = 0) -> np.dtype:
+    """The record type of :func:`tick_params` for ``n`` joints, ``rows`` rows of row kinds, the collision
+    capsules' ``points`` chain points and ``capsules``, and room for ``obstacles`` keep-out volumes."""
     m = max(rows, 1)
     row_fields = [(name, np.float64, m) for name in ("row_lo", "row_hi", "row_gain", "row_soft")]
     return np.dtype(
@@ -76,13 +79,22 @@ def params_dtype(n: int, rows: int = 0) -> np.dtype:
         + [(name, np.float64, n) for name in _VECTORS]
         + row_fields
         + [("n_rows", np.int64), ("srs", srs_dtype())]
+        + [("geo", keep_out_dtype(points, capsules, obstacles))]
     )
 
 
-def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 0) -> np.ndarray:
+def tick_params(
+    robot: Robot,
+    config,
+    rows: Sequence[RowKind] = (),
+    room: int = 0,
+    capsules: LinkCapsules | None = None,
+    obstacle_room: int = 0,
+) -> np.ndarray:
     """The tick's constants for ``robot`` under ``config`` (a :class:`~qpnso.control.config.ControllerConfig`)
     with the row kinds ``rows`` (their bounds, gains, hard or soft; :mod:`qpnso.control.rows`; room for
-    ``room`` rows), as a 1-element record array (the form Numba reads cheaply)."""
+    ``room`` rows), the arm's collision ``capsules`` and room for ``obstacle_room`` keep-out volumes (the
+    config's obstacles in it), as a 1-element record array (the form Numba reads cheaply)."""
     from qpnso.control.strategies import filter_alpha
 
     cfg, ec = config, config.elbow()
@@ -133,7 +145,8 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 
             row_soft=np.repeat([float(kind.soft) for kind in rows], sizes),
             n_rows=sum(sizes),
         )
-    params = new_record(params_dtype(robot.nq, max(room, sum(sizes))))
+    points, count = (capsules.points_count, capsules.count) if capsules else (0, 0)
+    params = new_record(params_dtype(robot.nq, max(room, sum(sizes)), points, count, obstacle_room))
     for name, value in values.items():
         field = params[name][0]
         if name.startswith("row_"):
@@ -142,4 +155,6 @@ def tick_params(robot: Robot, config, rows: Sequence[RowKind] = (), room: int = 
             params[name] = value
     if closed_form:
         params["srs"] = srs_geometry(robot).record  # the arm's geometry for the tick's interval kernel
+    if capsules is not None:
+        params["geo"] = keep_out_record(robot, capsules, obstacle_room, cfg.obstacles, KeepOut.of(cfg))
     return params

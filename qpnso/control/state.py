@@ -22,15 +22,17 @@ from qpnso.control.flags import FLAG_COST_UNDEFINED, FLAG_INTERNAL_ERROR
 from qpnso.control.rows import RowKind
 from qpnso.elbow.arm_angle import arm_angle_expression, elbow_points
 from qpnso.model.codegen import FastFunction
+from qpnso.model.collision import LinkCapsules, point_expressions
 from qpnso.model.costs import CostModel
 from qpnso.records import new_record
 
 
-def state_dtype(n: int, rows: int = 0) -> np.dtype:
-    """The record type of the arm's state at one tick, ``n`` joints and ``rows`` rows of row kinds
-    (:mod:`qpnso.control.rows`), laid out as the CasADi function of :class:`StateEvaluator` writes it (so the
+def state_dtype(n: int, rows: int = 0, points: int = 0) -> np.dtype:
+    """The record type of the arm's state at one tick, ``n`` joints, ``rows`` rows of row kinds
+    (:mod:`qpnso.control.rows`) and ``points`` chain points of the collision capsules
+    (:mod:`qpnso.model.collision`), laid out as the CasADi function of :class:`StateEvaluator` writes it (so the
     record is a view of its output buffer).  Frames: world; tool point; units rad, m, s; matrices row-major."""
-    f8, m = np.float64, max(rows, 1)
+    f8, m, k = np.float64, max(rows, 1), max(points, 1)
     return np.dtype(
         [
             ("R", f8, (3, 3)),  # tool rotation, world ← tool
@@ -48,6 +50,8 @@ def state_dtype(n: int, rows: int = 0) -> np.dtype:
             ("predicted", f8, n),  # q̇ predicted for the tick (rad/s, predicted_velocity): the drift's q̇
             ("rows", f8, m),  # h(q) of the row kinds' rows (their units; none: one 0)
             ("rows_gradient", f8, (m, n)),  # ∂h/∂q
+            ("points", f8, (k, 3)),  # the collision capsules' chain points (m, world; none: one 0)
+            ("points_J", f8, (k, 3, n)),  # ∂points/∂q (m/rad)
         ]
     )
 
@@ -105,10 +109,16 @@ class StateEvaluator:
     """
 
     def __init__(
-        self, cost: CostModel, compile: str | None = None, rows: Sequence[RowKind] = (), room: int = 0
+        self,
+        cost: CostModel,
+        compile: str | None = None,
+        rows: Sequence[RowKind] = (),
+        room: int = 0,
+        capsules: LinkCapsules | None = None,
     ) -> None:
         """``rows``: the row kinds whose ``h(q)`` and ``∇h`` the state holds, in ``room`` ≥ their rows
-        (the rest zero)."""
+        (the rest zero); ``capsules``: the arm's collision capsules, whose chain points and their Jacobians it
+        holds (None: one zero point)."""
         robot = cost.robot
         sym = cost.sym
         tool = sym.frame_placement(robot.tool_frame_id)
@@ -131,10 +141,12 @@ class StateEvaluator:
             tool_drift(sym.q, J, predicted),
             predicted,
             *row_parts(rows, sym, robot, room),
+            *point_parts(capsules, sym, robot),
         ]
         stacked = ca.vertcat(*[ca.vec(part) for part in parts])
         self.robot = robot
-        self.dtype = state_dtype(robot.nq, parts[-2].numel())  # (the rows as padded by row_parts)
+        points = capsules.points_count if capsules else 0
+        self.dtype = state_dtype(robot.nq, parts[-4].numel(), points)  # (the rows as padded by row_parts)
         assert stacked.numel() * 8 == self.dtype.itemsize  # the record is the output, field for field
         self._zero_velocity = np.zeros(robot.nq)
         self._fn = FastFunction(
@@ -195,6 +207,15 @@ def row_parts(rows: Sequence[RowKind], sym, robot, room: int) -> tuple[ca.SX, ca
     pad = max(room, values.numel(), 1) - values.numel()
     values, gradient = ca.vertcat(values, ca.SX.zeros(pad)), ca.vertcat(gradient, ca.SX.zeros(pad, robot.nq))
     return ca.densify(values), ca.densify(gradient.T)  # (a joint that cannot move h: a structural zero)
+
+
+def point_parts(capsules: LinkCapsules | None, sym, robot) -> tuple[ca.SX, ca.SX]:
+    """The chain points (k·3,) and their Jacobian in the record's row-major layout (k, 3, n)
+    (:func:`qpnso.model.collision.point_expressions`); no capsules: one zero point."""
+    if capsules is None:
+        return ca.SX.zeros(3), ca.SX.zeros(3 * robot.nq)
+    points, jacobian = point_expressions(sym, capsules)
+    return ca.densify(points), ca.densify(jacobian.T)
 
 
 PREDICTION_DAMPING = 1e-2

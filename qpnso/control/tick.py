@@ -52,6 +52,7 @@ from qpnso.control.params import params_dtype
 from qpnso.control.rows.elbow import elbow_row
 from qpnso.control.rows.joint_limits import velocity_bounds
 from qpnso.control.rows.kind import add_rows
+from qpnso.control.rows.obstacles import obstacle_bits, obstacle_rows, soft_violation
 from qpnso.control.state import PREDICTION_TOLERANCE, sanitize_state, state_dtype
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, nullspace_part
 from qpnso.qp.problem import SOLVED, problem_dtype, solution_dtype
@@ -81,7 +82,9 @@ ELBOW_ROM_TOL = 1e-6
 class Report(NamedTuple):
     """What a tick reports besides its command (:func:`begin_tick`), as Python reads it: status bits;
     ``dropped`` 1 when the arm angle is singular; the arm angle ``ns``, ROM_t and the continuity interval
-    (rad, unwrapped along the run); K(ns) (N·m/rad); level 1's pose error (m, rad) and the cost [M 18]."""
+    (rad, unwrapped along the run); K(ns) (N·m/rad); level 1's pose error (m, rad) and the cost [M 18]; the
+    least clearance of a link capsule to an obstacle (m; inf: none) with the pair (capsule, obstacle; −1: none),
+    and the keep-out rows' place among the soft rows (:mod:`qpnso.control.rows.obstacles`)."""
 
     bits: int
     dropped: int
@@ -94,6 +97,11 @@ class Report(NamedTuple):
     e_pos: float
     e_rot: float
     cost: float
+    clearance: float
+    clear_capsule: int
+    clear_obstacle: int
+    obstacle_first: int
+    obstacle_rows: int
 
 
 def report_dtype() -> np.dtype:
@@ -111,16 +119,19 @@ def command_dtype(n: int) -> np.dtype:
     return np.dtype(vectors + [("stiffness_dt", f8), ("damping", f8), ("damp_cmd", f8)])
 
 
-def tick_dtype(n: int, rows: int = 0, hard: int = 0, soft: int = 0) -> np.dtype:
+def tick_dtype(
+    n: int, rows: int = 0, hard: int = 0, soft: int = 0, points: int = 0, capsules: int = 0, obstacles: int = 0
+) -> np.dtype:
     """The one record a tick reads and writes, for ``n`` joints and ``rows`` rows of row kinds (``hard`` of
-    them hard, ``soft`` soft; :mod:`qpnso.control.rows`): the arm's ``state``
+    them hard, ``soft`` soft, keep-out rows among them; :mod:`qpnso.control.rows`), the collision capsules'
+    ``points`` and ``capsules``, room for ``obstacles``: the arm's ``state``
     (:mod:`qpnso.control.state`, written by CasADi in place), the ``params`` (:mod:`qpnso.control.params`), the
     ``memory`` across ticks (:mod:`qpnso.control.memory`), the ``problem`` and its ``solution``
     (:mod:`qpnso.qp.problem`), the ``report`` and the ``command``."""
     return np.dtype(
         [
-            ("state", state_dtype(n, rows)),
-            ("params", params_dtype(n, rows)),
+            ("state", state_dtype(n, rows, points)),
+            ("params", params_dtype(n, rows, points, capsules, obstacles)),
             ("memory", memory_dtype(n)),
             ("problem", problem_dtype(n, hard, 1 + soft)),  # (+1: the elbow row)
             ("solution", solution_dtype(n)),
@@ -340,6 +351,7 @@ def begin_tick(q, twist, tick, follow):
     pb.lb[:], pb.ub[:] = velocity_bounds(q, P)
     pb.has_level2, pb.n_hard, pb.n_soft = 0, 0, 0
     add_rows(pb, s, P)  # the row kinds' rows (qpnso.control.rows)
+    obstacle_rows(pb, s, P, r)  # the keep-out rows (qpnso.control.rows.obstacles)
     if follow:
         advance_reference(m, twist, P.dt)  # (after level 1 read it: the next tick's reference)
     return TICK_READY
@@ -355,6 +367,7 @@ def stop_tick(q, gravity, tick):
     ns = m.ns
     r.ns, r.rom_lo, r.rom_hi, r.iv_lo, r.iv_hi = ns, ns, ns, ns - math.pi, ns + math.pi
     r.stiffness, r.e_pos, r.e_rot, r.cost, r.dropped = 0.0, 0.0, 0.0, 0.0, 1
+    r.obstacle_rows = 0  # (the clearance: as begin_tick last found it)
     c.dq[:] = 0.0
     c.q_des[:] = q
     c.tau[:] = gravity
@@ -410,7 +423,7 @@ def finish_tick(q, dq_meas, tick):
     c.tau[:] = s.g + dynamically_consistent_projection(s.A, s.J, tau_null)[0]
     bits = r.bits
     if S.outcome == SOLVED:
-        bits |= answer_bits(S.tool_residual, S.slack_max)
+        bits |= answer_bits(S.tool_residual, soft_violation(t.problem, dq, r.obstacle_first, r.obstacle_rows))
         if not bits & FLAG_TOOL_LIMITED and prediction_missed(S.x, s.predicted):
             bits |= PREDICTION_MISSED
-    return bits | finish_command(q, c, s.g, P, r)
+    return bits | obstacle_bits(t.problem, dq, r, P) | finish_command(q, c, s.g, P, r)

@@ -82,8 +82,9 @@ def renew_interval(q, q_within, s, m, P):
     """The continuity interval [E 9] renewed in the memory record ``m`` at the state ``s`` (its tool pose, the
     memory's arm angle ``m.ns``) by the closed form (:func:`qpnso.elbow.closed_form.srs_interval`; the arm's
     geometry ``P.srs``), cut where a link would come within the margin of an obstacle
-    (:func:`qpnso.elbow.clearance.clear_interval`, the keep-out record ``P.geo``) — or, when ``q`` (rad) is not ``q_within`` its limits, its branch is undefined (joint
-    2, 4 or 6 exactly 0) or the closed form has none, marked failed (:func:`interval_failed`)."""
+    (:func:`qpnso.elbow.clearance.clear_interval`, the keep-out record ``P.geo``) — or, when ``q`` (rad) is
+    not ``q_within`` its limits, its branch is undefined (joint 2, 4 or 6 exactly 0) or the closed form has
+    none, marked failed (:func:`interval_failed`)."""
     s2, s4, s6, defined = branch_signs(q)
     if q_within and defined:
         code, lo, hi, full, _, _, _ = srs_interval(P.srs, s.R, s.p, s2, s4, s6, m.ns, P.q_min, P.q_max)

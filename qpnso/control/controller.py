@@ -62,7 +62,7 @@ from qpnso.control.tick import (
     tick_dtype,
 )
 from qpnso.elbow.clearance import OBSTACLE_ROOM, set_obstacles
-from qpnso.elbow.intervals import NumericalWalk, continuity_interval
+from qpnso.elbow.intervals import NumericalWalk
 from qpnso.errors import ConfigError, InputError, QpnsoError
 from qpnso.model.collision import has_capsules, link_capsules
 from qpnso.model.costs import CostModel
@@ -439,7 +439,7 @@ class Controller:
         (:func:`qpnso.control.memory.interval_failed`)."""
         m = self.records.memory[0]
         try:
-            walk = self._walk = self._walk or NumericalWalk(self.robot, q)
+            walk = self._walk = self._walk or self._new_walk(q)
             interval = walk.advance(self.config.interval_steps_per_tick)
         except QpnsoError:
             self._walk = None
@@ -450,12 +450,20 @@ class Controller:
             T = walk.target  # (the tool pose the walk started at, Pinocchio's)
             store_interval(m, interval.lo, interval.hi, interval.full_circle, T.rotation, T.translation)
 
+    def _new_walk(self, q: np.ndarray) -> NumericalWalk:
+        """The numerical walk from ``q`` (an arm without the closed form), ended at the obstacles too — unless a
+        link is within the margin at ``q`` already (the rows move it out; the closed form's tick does the same)."""
+        try:
+            return NumericalWalk(self.robot, q, obstacles=self.obstacles, margin=self.config.obstacle_margin)
+        except InputError:
+            return NumericalWalk(self.robot, q)
+
     def _first_interval(self, q: np.ndarray, state) -> None:
         """A run's first continuity interval of an arm without the closed form, at ``q`` whole (35 ms median on
         the Panda); when it cannot be computed the tick tries again ``interval_period`` ticks later."""
         m = self.records.memory[0]
         try:
-            interval = continuity_interval(self.robot, q)
+            interval = self._new_walk(q).advance(math.inf)
         except QpnsoError:
             return  # (none known: the first tick's elbow_advance asks again)
         store_interval(m, interval.lo, interval.hi, interval.full_circle, state.tool_rotation, state.tool_position)

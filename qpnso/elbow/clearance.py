@@ -1,4 +1,4 @@
-"""The arm's clearance from the keep-out volumes, and the arm angles that keep it (docs/method.md §8).
+"""The arm's clearance from the keep-out volumes, and the arm angles that keep it (docs/method.md §10).
 
 The *keep-out record* (:func:`keep_out_record`) holds what the control tick's kernels need: the link
 capsules (:mod:`qpnso.model.collision`), the obstacles (:mod:`qpnso.model.obstacles`) and the settings of

@@ -27,12 +27,23 @@ other six solving the tool pose by Newton to 1e-12), so the ends are accurate
 to about 1e-9 rad.  Excursions past a limit shorter than one step
 (``NumericalOptions.step_rad``) can be missed.  The walk can be taken in pieces
 (:class:`NumericalWalk`), as the control tick does.
+
+Obstacles (docs/method.md §10).  Given keep-out volumes (:mod:`qpnso.model.obstacles`) and a margin d_s (m),
+an arm angle is also feasible only where every link capsule (:mod:`qpnso.model.collision`) keeps at least
+d_s from every obstacle.  Closed form: the upper arm and forearm turn rigidly about the shoulder–wrist axis,
+and the kernels of :mod:`qpnso.elbow.clearance` find the clearance's sign changes (conservative advancement,
+bisection to ``END_TOL_RAD`` = 1e-7 rad): :func:`continuity_interval` cuts the joint-limit interval with
+``clear_interval`` (the control tick's kernel), :func:`feasible_intervals` splits every arc of Ψ with
+``next_crossing``.  Numerical: the walk also ends where the least clearance drops below d_s, the end bisected
+between the last two walk points (each midpoint put back on the self-motion by the pose correction) to
+``END_TOL_RAD`` in arm angle.  An end at an obstacle has ``Cause("obstacle", -1, link=…, obstacle=…)``.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Generator
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -44,6 +55,18 @@ from qpnso.elbow.arm_angle import (
     arm_angle,
     arm_angle_gradient,
     arm_angle_status,
+)
+from qpnso.elbow.clearance import (
+    END_TOL_RAD,
+    OBSTACLE_END,
+    OBSTACLE_ROOM,
+    clear_interval,
+    gap_at,
+    keep_out_record,
+    least_clearance,
+    next_crossing,
+    pair_distance,
+    set_obstacles,
 )
 from qpnso.elbow.closed_form import (
     MAX_ROWS,
@@ -65,13 +88,16 @@ from qpnso.elbow.srs import (
     self_motion,
     srs_geometry,
 )
-from qpnso.errors import ModelError, SingularityError
+from qpnso.errors import InputError, ModelError, SingularityError
+from qpnso.model.collision import LinkCapsules, link_capsules
+from qpnso.model.obstacles import Obstacle, as_obstacles
 from qpnso.model.robot import Robot
 
 TWO_PI = 2.0 * math.pi
 _MERGE_TOL = 1e-12
 _FEASIBLE_TOL = 1e-10
 _ALL_JOINTS = np.arange(7)
+_FULL_CIRCLE = (-math.pi, math.pi, None, None)
 
 
 @dataclass(frozen=True)
@@ -79,12 +105,15 @@ class Cause:
     """What ends an interval: a joint limit (``"limit"``, ``bound`` "min"/"max"),
     a singular point (``"singular"``: joint 2 or 6 through 0 in the closed form;
     a rank-deficient Jacobian or undefined arm angle in the numerical method,
-    ``joint = -1``) or, numerical method only, ``"unfinished"`` (step budget
-    exhausted).  ``joint`` is 0-based."""
+    ``joint = -1``), an obstacle (``"obstacle"``, ``joint = -1``: the capsule of ``link``,
+    e.g. ``"link_2-link_3"``, comes within the margin of obstacle number ``obstacle``, 0-based)
+    or, numerical method only, ``"unfinished"`` (step budget exhausted).  ``joint`` is 0-based."""
 
     kind: str
     joint: int
     bound: str = ""
+    link: str = ""
+    obstacle: int = -1
 
 
 @dataclass(frozen=True)
@@ -126,11 +155,17 @@ def wrap(angle):
 _BOUNDS = ("min", "max")
 
 
-def end_cause(code: int) -> Cause | None:
+def end_cause(code: int, capsules: Sequence[str] = ()) -> Cause | None:
     """The :class:`Cause` of an end code of :mod:`qpnso.elbow.closed_form` (a limit ``2·joint + is_max``, a
-    singular cut ``−1 − joint``, :data:`~qpnso.elbow.closed_form.NO_END`)."""
+    singular cut ``−1 − joint``, :data:`~qpnso.elbow.closed_form.NO_END`) or of :mod:`qpnso.elbow.clearance`
+    (``OBSTACLE_END − (100·capsule + obstacle)``, codes ≤ ``OBSTACLE_END``); ``capsules`` names the link
+    capsules (:attr:`qpnso.model.collision.LinkCapsules.names`; a capsule beyond them is ``"capsule <i>"``)."""
     if code == NO_END:
         return None
+    if code <= OBSTACLE_END:
+        capsule, obstacle = divmod(OBSTACLE_END - code, 100)
+        link = capsules[capsule] if capsule < len(capsules) else f"capsule {capsule}"
+        return Cause("obstacle", -1, link=link, obstacle=obstacle)
     return Cause("limit", code // 2, _BOUNDS[code % 2]) if code >= 0 else Cause("singular", -1 - code)
 
 
@@ -170,21 +205,21 @@ def _cuts(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
 def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarray):
     """Feasible arcs ``[(lo, hi, lo_cause, hi_cause)]`` for the given joints (0-based).
 
-    The full circle is ``(-π, π, None, None)``.
+    The full circle is :data:`_FULL_CIRCLE` ``(-π, π, None, None)``.
     """
     cuts, labels, hard = _cuts(sm, q_min, q_max, joints)
     lo_lim, hi_lim = q_min[joints] - _FEASIBLE_TOL, q_max[joints] + _FEASIBLE_TOL
     m = cuts.size
     if m == 0:
         q = sm.joints(np.array([0.0]))[:, joints]
-        return [(-math.pi, math.pi, None, None)] if np.all((q >= lo_lim) & (q <= hi_lim)) else []
+        return [_FULL_CIRCLE] if np.all((q >= lo_lim) & (q <= hi_lim)) else []
     hi = np.append(cuts[1:], cuts[0] + TWO_PI)
     q = sm.joints(0.5 * (cuts + hi))[:, joints]
     feasible = np.all((q >= lo_lim) & (q <= hi_lim), axis=1).tolist()
     hard_l = hard.tolist()
     starts = [i for i in range(m) if feasible[i] and (hard_l[i] or not feasible[i - 1])]
     if not starts:
-        return [(-math.pi, math.pi, None, None)] if all(feasible) else []
+        return [_FULL_CIRCLE] if all(feasible) else []
     arcs = []
     for i in starts:
         j = i
@@ -198,16 +233,141 @@ def _arcs(sm: SelfMotion, q_min: np.ndarray, q_max: np.ndarray, joints: np.ndarr
     return sorted(arcs, key=lambda arc: arc[0])
 
 
+# ---------------------------------------------------------------- obstacles
+@functools.lru_cache(maxsize=16)
+def _keep_out_template(robot: Robot, room: int) -> np.ndarray:
+    """The keep-out record (:func:`qpnso.elbow.clearance.keep_out_record`) of ``robot``'s link capsules with room
+    for ``room`` obstacles and none in it, cached per robot and room (never written: :func:`_keep_out` copies)."""
+    return keep_out_record(robot, link_capsules(robot), room)
+
+
+def _keep_out(robot: Robot, obstacles: Sequence[Obstacle], margin: float) -> tuple[np.ndarray, LinkCapsules]:
+    """A keep-out record holding ``obstacles`` (:func:`qpnso.elbow.clearance.set_obstacles`) and the margin d_s
+    (m, finite, ≥ 0), with the link capsules it was built for."""
+    if not (math.isfinite(margin) and margin >= 0.0):
+        raise InputError(f"the obstacle margin must be a finite number >= 0 m, got {margin!r}")
+    obs = as_obstacles(obstacles)
+    rec = _keep_out_template(robot, max(OBSTACLE_ROOM, len(obs))).copy()
+    set_obstacles(rec, obs)
+    rec[0]["margin"] = margin
+    return rec, link_capsules(robot)
+
+
+def _turns_rigidly(robot: Robot) -> bool:
+    """Whether ``robot``'s chain points turn rigidly about the shoulder–wrist axis with the arm angle (the
+    keep-out record's ``arcs``: the obstacle-aware intervals in closed form)."""
+    return bool(_keep_out_template(robot, OBSTACLE_ROOM)[0]["arcs"])
+
+
+def _raise_if_within_margin(G: np.void, points: np.ndarray, capsules: LinkCapsules) -> None:
+    """InputError when a link capsule at the chain ``points`` (k, 3; m) is nearer an obstacle than the margin of
+    the keep-out record ``G`` (:func:`qpnso.elbow.clearance.least_clearance`, every capsule)."""
+    d, c, o = least_clearance(G, points, False)
+    if d < G["margin"]:
+        raise InputError(
+            f"link {capsules.names[c]} is {d:.3g} m from obstacle {o}, within the margin {G['margin']:g} m: "
+            "no obstacle-free interval holds q"
+        )
+
+
+def _fixed_clearance(G: np.void, points: np.ndarray) -> float:
+    """The least distance (m) of a capsule that does NOT turn with the arm angle (base, hand) to an obstacle,
+    at the chain ``points`` (:func:`qpnso.elbow.clearance.pair_distance`; ``inf`` with none)."""
+    pairs = [(c, o) for c in range(G["n_capsules"]) if G["cap_moves"][c] == 0.0 for o in range(G["n_obstacles"])]
+    return min((pair_distance(G, points, c, o)[0] for c, o in pairs), default=math.inf)
+
+
+def _cut_at_obstacles(
+    robot: Robot, q: np.ndarray, ns: float, interval: Interval, obstacles: Sequence[Obstacle], margin: float
+) -> Interval:
+    """The closed-form ``interval`` (rad, around the arm angle ``ns`` of ``q``) cut where a link capsule comes
+    within ``margin`` (m) of an obstacle: :func:`qpnso.elbow.clearance.clear_interval`, the kernel the control
+    tick runs, from the chain points at ``q``.  InputError when ``q`` is within the margin already."""
+    rec, capsules = _keep_out(robot, obstacles, margin)
+    G, points = rec[0], capsules.points(robot, q)
+    _raise_if_within_margin(G, points, capsules)
+    below, above = (math.inf, math.inf) if interval.full_circle else (ns - interval.lo, interval.hi - ns)
+    cut_below, cut_above, lo_cut, hi_cut = clear_interval(G, points, below, above)
+    if not (lo_cut or hi_cut):
+        return interval
+    names = capsules.names
+    lo_cause = interval.lo_cause
+    if lo_cut or cut_below < below:  # (no crossing below: the circle's other way round to the one above)
+        lo_cause = end_cause(lo_cut or hi_cut, names)
+    hi_cause = end_cause(hi_cut, names) if hi_cut else interval.hi_cause
+    return Interval(ns - cut_below, ns + cut_above, False, "closed_form", lo_cause, hi_cause)
+
+
+def _split_at_obstacles(G: np.void, points: np.ndarray, ref: float, arc: tuple, names: Sequence[str]) -> list[tuple]:
+    """The parts of ``arc`` ``(lo, hi, lo_cause, hi_cause)`` (rad) where the moving capsules keep the margin of
+    the keep-out record ``G``, ``points`` the chain points at the arm angle ``ref`` inside it: repeated
+    :func:`qpnso.elbow.clearance.next_crossing` from ``lo`` to ``hi`` (offsets from ``ref``), each search
+    resumed :data:`~qpnso.elbow.clearance.END_TOL_RAD` past the crossing it found (past the bisection's
+    bracket); an end at a crossing is its bracket's side nearer ``lo``, within 1e-7 rad of it."""
+    lo, hi, lo_cause, hi_cause = arc
+    x, stop, buf = lo - ref, hi - ref, np.empty_like(points)
+    free = gap_at(G, points, x, buf)[0] >= 0.0
+    start, start_cause, parts = lo, lo_cause, []
+    while True:
+        found, at, code = next_crossing(G, points, x, stop)
+        if not found:
+            break
+        cause = end_cause(code, names)
+        if free:
+            parts.append((start, ref + at, start_cause, cause))
+        x = at + END_TOL_RAD
+        if x >= stop:
+            return parts
+        free = gap_at(G, points, x, buf)[0] >= 0.0
+        start, start_cause = ref + x, cause
+    if free:
+        parts.append((start, hi, start_cause, hi_cause))
+    return parts
+
+
+def _clear_arcs(robot: Robot, sm: SelfMotion, capsules: LinkCapsules, G: np.void, arcs: list[tuple]) -> list[tuple]:
+    """``arcs`` ``[(lo, hi, lo_cause, hi_cause)]`` (rad, :func:`_arcs`' convention) intersected with the arm
+    angles where every link capsule keeps the margin of the keep-out record ``G`` from every obstacle: each arc
+    split at the clearance's sign changes (:func:`_split_at_obstacles`, the chain points from the closed-form
+    IK ``sm`` of ``robot`` at the arc's midpoint); none when a capsule that does not turn with the arm angle is
+    within the margin.  A full circle's first and last parts join across ±π."""
+    parts: list[tuple] = []
+    for arc in arcs:
+        ref = 0.5 * (arc[0] + arc[1])
+        points = capsules.points(robot, sm.joints(ref))
+        if _fixed_clearance(G, points) < G["margin"]:
+            return []
+        parts += _split_at_obstacles(G, points, ref, arc, capsules.names)
+    if arcs == [_FULL_CIRCLE] and len(parts) > 1 and parts[0][0] == -math.pi and parts[-1][1] == math.pi:
+        first, last = parts[0], parts.pop()
+        parts[0] = (last[0], first[1] + TWO_PI, last[2], first[3])
+    parts = [(lo - TWO_PI, hi - TWO_PI, a, b) if lo >= math.pi else (lo, hi, a, b) for lo, hi, a, b in parts]
+    return sorted(parts, key=lambda part: part[0])
+
+
 # --------------------------------------------------------------- public API
+Arcs = list[tuple[float, float]]
+
+
 def feasible_intervals(
-    robot: Robot, pose: object, branch_: object, per_joint: bool = False
-) -> list[tuple[float, float]] | tuple[list[tuple[float, float]], dict[int, list[tuple[float, float]]]]:
-    """Ψ [E 8]: arcs of arm angles (rad) where all joint limits hold (S-R-S, closed form).
+    robot: Robot,
+    pose: object,
+    branch_: object,
+    per_joint: bool = False,
+    obstacles: Sequence[Obstacle] = (),
+    margin: float = 0.03,
+) -> Arcs | tuple[Arcs, dict[int | str, Arcs]]:
+    """Ψ [E 8]: arcs of arm angles (rad) where all joint limits hold (S-R-S, closed form) and, with
+    ``obstacles``, where every link capsule keeps at least ``margin`` (m) from every obstacle.
 
     Arcs ``(lo, hi)``, sorted by ``lo``, ``-π ≤ lo < π``, ``lo < hi ≤ lo + 2π``
     (an arc crossing ±π is not split).  Singular points (joint 2 or 6 through 0)
-    end arcs.  With ``per_joint=True`` also returns ``{k: Ψ_k}`` [E 7] for
-    k = 0…6 (0-based; limits only, no singular cuts except for joints 2 and 6 themselves).
+    end arcs.  An end at an obstacle is within 1e-7 rad of the clearance's sign change (module docstring); a
+    capsule that does not turn with the arm angle (base, hand) within the margin empties Ψ.  With
+    ``per_joint=True`` also returns ``{k: Ψ_k}`` [E 7] for k = 0…6 (0-based; limits only, no singular cuts
+    except for joints 2 and 6 themselves) and, with ``obstacles``, ``"obstacles"``: the arcs where the
+    capsules keep the margin, joint limits left out.  ModelError for an arm whose chain points do not turn
+    rigidly with the arm angle (then use :func:`continuity_interval`).
     """
     wide = _limits_beyond_pi(robot)
     if wide is not None:
@@ -217,10 +377,19 @@ def feasible_intervals(
         )
     sm = self_motion(robot, as_pose(pose), branch_)
     everything = _arcs(sm, robot.q_min, robot.q_max, _ALL_JOINTS)
+    if obstacles:
+        if not _turns_rigidly(robot):
+            raise ModelError(f"{robot.name}: the links do not turn rigidly with the arm angle (no obstacle arcs)")
+        rec, capsules = _keep_out(robot, obstacles, margin)
+        everything = _clear_arcs(robot, sm, capsules, rec[0], everything)
     psi = [(lo, hi) for lo, hi, _, _ in everything]
     if not per_joint:
         return psi
-    per = {k: [(lo, hi) for lo, hi, _, _ in _arcs(sm, robot.q_min, robot.q_max, np.array([k]))] for k in range(7)}
+    per: dict[int | str, Arcs] = {
+        k: [(lo, hi) for lo, hi, _, _ in _arcs(sm, robot.q_min, robot.q_max, np.array([k]))] for k in range(7)
+    }
+    if obstacles:
+        per["obstacles"] = [(lo, hi) for lo, hi, _, _ in _clear_arcs(robot, sm, capsules, rec[0], [_FULL_CIRCLE])]
     return psi, per
 
 
@@ -238,17 +407,24 @@ def closed_form_applies(robot: Robot) -> bool:
     return is_srs(robot) and _limits_beyond_pi(robot) is None
 
 
-def continuity_interval(robot: Robot, q: object, options: "NumericalOptions | None" = None) -> Interval:
-    """The continuity interval [E 9] holding the arm angle of ``q`` (rad, unwrapped).
+def continuity_interval(
+    robot: Robot,
+    q: object,
+    options: "NumericalOptions | None" = None,
+    obstacles: Sequence[Obstacle] = (),
+    margin: float = 0.03,
+) -> Interval:
+    """The continuity interval [E 9] holding the arm angle of ``q`` (rad, unwrapped), with ``obstacles`` also
+    ended where a link capsule would come within ``margin`` (m) of one.
 
-    Closed form (:func:`qpnso.elbow.closed_form.srs_interval`, the kernel the control tick runs) when
-    :func:`closed_form_applies`, else :func:`numerical_interval`.  Raises
-    JointLimitError if ``q`` is outside its limits and SingularityError if the
-    arm angle or branch of ``q`` is undefined.
+    Closed form (:func:`qpnso.elbow.closed_form.srs_interval`, the kernel the control tick runs, then
+    :func:`qpnso.elbow.clearance.clear_interval`, the tick's too) when :func:`closed_form_applies`, else
+    :func:`numerical_interval`.  Raises JointLimitError if ``q`` is outside its limits, SingularityError if the
+    arm angle or branch of ``q`` is undefined and InputError if a link at ``q`` is within the margin already.
     """
     qv = robot.check_q(q)
-    if not closed_form_applies(robot):
-        return numerical_interval(robot, qv, options)
+    if not closed_form_applies(robot) or (obstacles and not _turns_rigidly(robot)):
+        return numerical_interval(robot, qv, options, obstacles, margin)
     pin.framesForwardKinematics(robot.model, robot.data, qv)
     ns = _checked(_status_after_fk(robot))
     branch_ = _branch_of(qv)
@@ -258,7 +434,8 @@ def continuity_interval(robot: Robot, q: object, options: "NumericalOptions | No
         g.record[0], R, p, *branch_floats(branch_), ns, robot.q_min, robot.q_max
     )
     raise_unless_reached(code, dist, g)
-    return Interval(lo, hi, bool(full), "closed_form", end_cause(lo_code), end_cause(hi_code))
+    interval = Interval(lo, hi, bool(full), "closed_form", end_cause(lo_code), end_cause(hi_code))
+    return _cut_at_obstacles(robot, qv, ns, interval, obstacles, margin) if obstacles else interval
 
 
 # ---------------------------------------------------------------- numerical
@@ -329,19 +506,75 @@ def _crossing(
     return q, Cause("limit", k, bound)
 
 
+class _Clearance:
+    """The numerical walk's obstacles: a keep-out record (:func:`_keep_out`: the obstacles, the margin d_s) and
+    the link capsules of ``robot``."""
+
+    def __init__(self, robot: Robot, obstacles: Sequence[Obstacle], margin: float) -> None:
+        self.robot = robot
+        rec, self.capsules = _keep_out(robot, obstacles, margin)
+        self.G = rec[0]
+
+    def gap(self, q: np.ndarray) -> tuple[float, int]:
+        """``(d − d_s, code)`` at ``q`` (rad): the least distance (m) of a link capsule to an obstacle minus the
+        margin (:func:`qpnso.elbow.clearance.least_clearance`, every capsule) and the pair's end code
+        (:func:`end_cause`)."""
+        d, c, o = least_clearance(self.G, self.capsules.points(self.robot, q), False)
+        return d - self.G["margin"], OBSTACLE_END - (100 * c + o)
+
+    def raise_if_within_margin(self, q: np.ndarray) -> None:
+        """InputError when a link at ``q`` is within the margin (:func:`_raise_if_within_margin`)."""
+        _raise_if_within_margin(self.G, self.capsules.points(self.robot, q), self.capsules)
+
+
+def _obstacle_end(
+    robot: Robot, q_in: np.ndarray, q_out: np.ndarray, target: pin.SE3, tol: float, clear: _Clearance
+) -> Generator[None, None, tuple[np.ndarray, Cause]]:
+    """Where the clearance (:meth:`_Clearance.gap`) changes sign between the self-motion configurations ``q_in``
+    (clear) and ``q_out`` (within the margin): bisection on the joint-space chord, each midpoint put back on the
+    self-motion by :func:`_newton` (yielding after each of its iterations and each halving), until their arm
+    angles are :data:`~qpnso.elbow.clearance.END_TOL_RAD` apart.  Returns the clear side and the pair's cause."""
+    ns_in, ns_out = arm_angle(robot, q_in), arm_angle(robot, q_out)
+    code = clear.gap(q_out)[1]
+    for _ in range(60):
+        if abs(wrap(ns_out - ns_in)) <= END_TOL_RAD:
+            break
+        q_mid = yield from _newton(robot, 0.5 * (q_in + q_out), target, tol)
+        gap, mid_code = clear.gap(q_mid)
+        if gap >= 0.0:
+            q_in, ns_in = q_mid, arm_angle(robot, q_mid)
+        else:
+            q_out, ns_out, code = q_mid, arm_angle(robot, q_mid), mid_code
+        yield
+    return q_in, end_cause(code, clear.capsules.names)
+
+
 def _walk(
-    robot: Robot, q0: np.ndarray, ns0: float, direction: np.ndarray, target: pin.SE3, opt: NumericalOptions
+    robot: Robot,
+    q0: np.ndarray,
+    ns0: float,
+    direction: np.ndarray,
+    target: pin.SE3,
+    opt: NumericalOptions,
+    clear: _Clearance | None = None,
 ) -> Generator[None, None, tuple[float, Cause | None, np.ndarray]]:
     """Follow the self-motion from ``q0`` along ``direction``, yielding after each Newton iteration of a step's
     pose correction or of a limit crossing's exact solve and after each step (the limits, the arm angle and the
-    next null-space direction), but the last: returns the unwrapped ns at the end, its cause and q there."""
+    next null-space direction), but the last: returns the unwrapped ns at the end, its cause and q there.  With
+    ``clear`` the walk also ends where a link comes within the margin of an obstacle (:func:`_obstacle_end`,
+    checked at every step's end and at a limit crossing: a violation shorter than a step can be missed)."""
     q, ns, d = q0.copy(), ns0, direction
     for _ in range(opt.max_steps):
         q_new = yield from _newton(robot, q + opt.step_rad * d, target, opt.pose_tol)
         status = arm_angle_status(robot, q_new)
-        if np.any(q_new > robot.q_max) or np.any(q_new < robot.q_min):
+        beyond = bool(np.any(q_new > robot.q_max) or np.any(q_new < robot.q_min))
+        if beyond or (clear is not None and clear.gap(q_new)[0] < 0.0):
             yield  # (this step found the crossing; its exact solve is the next pieces)
-            q_end, cause = yield from _crossing(robot, q, q_new, target, opt.pose_tol)
+            q_end, cause = q_new, None
+            if beyond:
+                q_end, cause = yield from _crossing(robot, q, q_new, target, opt.pose_tol)
+            if clear is not None and clear.gap(q_end)[0] < 0.0:  # (an obstacle before the limit)
+                q_end, cause = yield from _obstacle_end(robot, q, q_end, target, opt.pose_tol, clear)
             return ns + wrap(arm_angle_status(robot, q_end).value - ns), cause, q_end
         d_new = _null_direction(robot, q_new, d, opt.sigma_min)
         if d_new is None or not status.ok:
@@ -362,12 +595,24 @@ class NumericalWalk:
     0.1 ms each on the Panda — and returns the :class:`Interval` once both walks have ended (None before).  The
     control tick of an arm without the closed form advances one a few pieces a tick
     (``ControllerConfig.interval_steps_per_tick``): a whole walk took 35 ms median on the Panda, and was renewed
-    inside a tick every ``interval_period`` ticks of a moving tool.  Raises SingularityError where the self-motion
-    is undefined at ``q`` (here) or JointLimitError for ``q`` outside its limits."""
+    inside a tick every ``interval_period`` ticks of a moving tool.  With ``obstacles`` the walks also end where a
+    link capsule comes within ``margin`` (m) of one (:func:`_walk`).  Raises SingularityError where the self-motion
+    is undefined at ``q`` (here), JointLimitError for ``q`` outside its limits or InputError for a link at ``q``
+    within the margin."""
 
-    def __init__(self, robot: Robot, q: object, options: NumericalOptions | None = None) -> None:
+    def __init__(
+        self,
+        robot: Robot,
+        q: object,
+        options: NumericalOptions | None = None,
+        obstacles: Sequence[Obstacle] = (),
+        margin: float = 0.03,
+    ) -> None:
         opt = options or NumericalOptions()
         qv = robot.check_q(q)
+        clear = _Clearance(robot, obstacles, margin) if obstacles else None
+        if clear is not None:
+            clear.raise_if_within_margin(qv)
         self.ns0 = arm_angle(robot, qv)
         self.target = robot.tool_pose(qv)
         grad = arm_angle_gradient(robot, qv)
@@ -377,18 +622,18 @@ class NumericalWalk:
         if abs(d @ grad) < 1e-12:
             raise SingularityError("the self-motion does not change the arm angle at q")
         self.steps = 0
-        self._walks = self._both(robot, qv, d, opt)
+        self._walks = self._both(robot, qv, d, opt, clear)
         self._result: Interval | None = None
 
     def _both(
-        self, robot: Robot, qv: np.ndarray, d: np.ndarray, opt: NumericalOptions
+        self, robot: Robot, qv: np.ndarray, d: np.ndarray, opt: NumericalOptions, clear: _Clearance | None
     ) -> Generator[None, None, Interval]:
         ns0, target = self.ns0, self.target
-        hi, hi_c, hi_q = yield from _walk(robot, qv, ns0, d, target, opt)
+        hi, hi_c, hi_q = yield from _walk(robot, qv, ns0, d, target, opt, clear)
         if hi_c is None and hi - ns0 >= TWO_PI:
             return Interval(ns0 - math.pi, ns0 + math.pi, True, "numerical")
         yield  # (the first walk's last step was this call's step)
-        lo, lo_c, lo_q = yield from _walk(robot, qv, ns0, -d, target, opt)
+        lo, lo_c, lo_q = yield from _walk(robot, qv, ns0, -d, target, opt, clear)
         if hi - lo > TWO_PI:
             lo = hi - TWO_PI
         return Interval(min(lo, ns0), max(hi, ns0), False, "numerical", lo_c, hi_c, lo_q, hi_q)
@@ -406,13 +651,20 @@ class NumericalWalk:
         return self._result
 
 
-def numerical_interval(robot: Robot, q: object, options: NumericalOptions | None = None) -> Interval:
+def numerical_interval(
+    robot: Robot,
+    q: object,
+    options: NumericalOptions | None = None,
+    obstacles: Sequence[Obstacle] = (),
+    margin: float = 0.03,
+) -> Interval:
     """Continuity interval by following the self-motion numerically (any 7-DOF arm): a
-    :class:`NumericalWalk` to its end.
+    :class:`NumericalWalk` to its end (with ``obstacles``: also ended where a link capsule comes within
+    ``margin``, m, of one).
 
-    Accuracy: limit ends to ~1e-9 rad (exact crossing solve); singular ends to
-    one step (``options.step_rad`` in joint space).
+    Accuracy: limit ends to ~1e-9 rad (exact crossing solve); obstacle ends to 1e-7 rad in arm angle
+    (bisection); singular ends to one step (``options.step_rad`` in joint space).
     """
-    interval = NumericalWalk(robot, q, options).advance(math.inf)
+    interval = NumericalWalk(robot, q, options, obstacles, margin).advance(math.inf)
     assert interval is not None  # (a walk to the end has its interval)
     return interval

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,8 @@ from qpnso.elbow.intervals import continuity_interval, feasible_intervals
 from qpnso.elbow.rom import ElbowConfig, clip_rom
 from qpnso.elbow.srs import branch, self_motion
 from qpnso.errors import InputError
+from qpnso.model.collision import clearances, geometry_model
+from qpnso.model.obstacles import Obstacle
 from qpnso.model.robot import Robot
 
 
@@ -35,12 +38,29 @@ def _shade(ax, arcs, color: str, alpha: float) -> None:
                 ax.axvspan(math.degrees(a), math.degrees(b), color=color, alpha=alpha, lw=0)
 
 
+def _clearance_panel(
+    ax, robot: Robot, grid: np.ndarray, joints: np.ndarray, obstacles: Sequence[Obstacle], margin: float
+) -> None:
+    """Each link capsule's clearance (m: its least distance to an obstacle, coal through
+    :func:`qpnso.model.collision.clearances`, independent of the interval's own kernels) against the arm angle
+    ``grid`` (rad, drawn in degrees) at the self-motion's ``joints`` (rad), and the margin (m)."""
+    geom = geometry_model(robot)
+    least = np.array([clearances(robot, q, obstacles, geom).min(axis=1) for q in joints])
+    for k, obj in enumerate(geom.geometryObjects):
+        ax.plot(np.degrees(grid), least[:, k], lw=1.0, label=obj.name)
+    ax.axhline(margin, color="tab:red", ls="--", lw=0.8, label=f"margin {margin:g} m")
+    ax.set_ylabel("clearance (m)")
+    ax.legend(fontsize=6, loc="upper right", ncol=2)
+
+
 def plot_intervals(
     robot: Robot,
     q: object,
     rom: ElbowConfig | None = None,
     out: str | Path = "intervals.png",
     samples: int = 1441,
+    obstacles: Sequence[Obstacle] = (),
+    margin: float = 0.03,
 ) -> Path:
     """Every joint versus the arm angle for the tool pose of ``q`` (S-R-S closed form).
 
@@ -48,7 +68,10 @@ def plot_intervals(
     where that joint is within its limits (light green), Ψ (all joints, green
     band in every panel), the continuity interval (blue outline), the current
     arm angle (black line) and, if ``rom`` is given, ROM_t (orange band;
-    ``ns0`` is the current arm angle).  Writes a PNG and returns its path.
+    ``ns0`` is the current arm angle).  With ``obstacles`` Ψ and the continuity interval also keep every link
+    capsule ``margin`` (m) from them (:func:`qpnso.elbow.intervals.feasible_intervals`), and a last panel draws
+    each capsule's clearance (m) with the margin and the interval shaded (blue).  Writes a PNG and returns its
+    path.
     """
     plt = _pyplot()
     qv = robot.check_q(q)
@@ -57,10 +80,16 @@ def plot_intervals(
         raise InputError(f"samples must be >= 10, got {samples}")
     grid = np.linspace(-math.pi, math.pi, samples)
     joints = self_motion(robot, pose, b).joints(grid)
-    psi, per_joint = feasible_intervals(robot, pose, b, per_joint=True)
-    interval = continuity_interval(robot, qv)
-    fig, axes = plt.subplots(robot.nq, 1, figsize=(8, 1.6 * robot.nq + 1), sharex=True)
-    for k, ax in enumerate(axes):
+    psi, per_joint = feasible_intervals(robot, pose, b, per_joint=True, obstacles=obstacles, margin=margin)
+    interval = continuity_interval(robot, qv, obstacles=obstacles, margin=margin)
+    panels = robot.nq + (1 if obstacles else 0)
+    fig, axes = plt.subplots(panels, 1, figsize=(8, 1.6 * panels + 1), sharex=True)
+    if obstacles:
+        _clearance_panel(axes[-1], robot, grid, joints, obstacles, margin)
+        _shade(axes[-1], [(interval.lo, interval.hi)], "tab:blue", 0.15)
+        axes[-1].axvline(math.degrees(ns), color="black", lw=1.0)
+        axes[-1].grid(alpha=0.3)
+    for k, ax in enumerate(axes[: robot.nq]):
         curve = np.degrees(joints[:, k])
         curve[1:][np.abs(np.diff(curve)) > 90] = np.nan  # do not draw the ±180° wrap as a line
         _shade(ax, per_joint[k], "tab:green", 0.12)
@@ -87,9 +116,10 @@ def plot_intervals(
         if interval.full_circle
         else f"[{math.degrees(interval.lo):.1f}, {math.degrees(interval.hi):.1f}] deg"
     )
+    keep_out = f", {len(obstacles)} obstacle(s), margin {margin:g} m" if obstacles else ""
     axes[0].set_title(
         f"{robot.name}: joints vs arm angle, branch {b.as_tuple()}, ns = {math.degrees(ns):.1f} deg, "
-        f"interval {width}\n(green: Ψ, light green: joint within limits, orange: ROM_t, red: limits)",
+        f"interval {width}{keep_out}\n(green: Ψ, light green: joint within limits, orange: ROM_t, red: limits)",
         fontsize=9,
     )
     fig.tight_layout()

@@ -1,4 +1,4 @@
-"""The arm's collision geometry: a capsule per link, fitted to the joint centres (docs/method.md §8).
+"""The arm's collision geometry: a capsule per link, fitted to the joint centres (docs/method.md §10).
 
 The shipped URDFs have no collision elements, and the Panda's are meshes; every arm therefore gets the
 capsules of its kinematic chain: the *chain points* are the base origin, the origin of every joint (on its
@@ -160,11 +160,10 @@ def point_expressions(sym, capsules: LinkCapsules) -> tuple[ca.SX, ca.SX]:
     return points, ca.jacobian(points, sym.q)
 
 
-def _parent_joint(robot: Robot, frame: int) -> int:
-    """The joint whose frame holds a capsule ending at chain point ``frame`` rigidly: the parent of that
-    joint (the point is fixed in the link before it), or the tool frame's own joint."""
-    f = robot.model.frames[frame]
-    return robot.model.parents[f.parentJoint] if f.type == pin.FrameType.JOINT else f.parentJoint
+def _holding_joint(robot: Robot, frame: int) -> int:
+    """The joint whose link holds a capsule that starts at chain point ``frame`` (a joint's origin, or the base):
+    that joint (every point of a merged capsule lies on the axes of the joints after it)."""
+    return robot.model.frames[frame].parentJoint
 
 
 def geometry_model(robot: Robot, capsules: LinkCapsules | None = None) -> pin.GeometryModel:
@@ -179,7 +178,7 @@ def geometry_model(robot: Robot, capsules: LinkCapsules | None = None) -> pin.Ge
     geom = pin.GeometryModel()
     for k in range(capsules.count):
         a, b = p[capsules.a[k]], p[capsules.b[k]]
-        joint = _parent_joint(robot, capsules.frames[capsules.b[k]])
+        joint = _holding_joint(robot, capsules.frames[capsules.a[k]])
         world = pin.SE3(_z_to(b - a), 0.5 * (a + b))
         placement = robot.data.oMi[joint].inverse() * world
         shape = coal.Capsule(capsules.radius[k], float(np.linalg.norm(b - a)))

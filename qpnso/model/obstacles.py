@@ -1,5 +1,5 @@
 """Keep-out volumes of the operating room: the equipment around the patient as world-frame primitives
-(docs/method.md §8).
+(docs/method.md §10).
 
 :class:`Sphere`, :class:`Capsule` and :class:`Box` are settings (frozen dataclasses, metres, world frame):
 given as ``ControllerConfig(obstacles=[...])``, ``[[obstacles]]`` tables in a TOML file (``type = "box"``,

@@ -1,4 +1,4 @@
-"""Keep-out rows: every link capsule kept at least the margin ``d_s`` from every obstacle (docs/method.md §8).
+"""Keep-out rows: every link capsule kept at least the margin ``d_s`` from every obstacle (docs/method.md §10).
 
 A capsule–obstacle pair nearer than the influence distance ``d_i`` gives the velocity damper
 ``ḋ ≥ −ξ (d − d_s)/(d_i − d_s)`` on its distance ``d`` (the damper of :mod:`qpnso.control.rows.damper`, gain

@@ -1,5 +1,5 @@
 """The papers' baselines do what their papers say, checked by what their torques and motions do, not by
-their formulas (docs/method.md §8): DP dissipates, FOP and elbow-up restore their postures, the gradient
+their formulas (docs/method.md §10): DP dissipates, FOP and elbow-up restore their postures, the gradient
 baseline descends the cost (by finite differences of the cost model), and the elbow paper's set-point
 modulation brings an elbow outside ROM_t back (closed loop, arm angle by Pinocchio's forward kinematics)."""
 

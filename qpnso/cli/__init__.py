@@ -36,6 +36,11 @@ __all__ = ["Handler", "build_parser", "main"]
 
 Handler = Callable[[argparse.Namespace], int]
 
+IGNORE_OBSTACLES_HELP = (
+    "the controller is not given the scenario's obstacles; the room still has them and the run measures every "
+    "link's clearance to them (coal)"
+)
+
 
 # ------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
@@ -52,6 +57,17 @@ def build_parser() -> argparse.ArgumentParser:
     add_q_arguments(p)
     p.add_argument("--rom-half-width-deg", type=float, default=50.0, help="ROM half width, degrees (default 50)")
     p.add_argument("--safety-margin-deg", type=float, default=10.0, help="safety margin, degrees (default 10)")
+    p.add_argument(
+        "--obstacles",
+        default=None,
+        help='TOML file of [[obstacles]] tables (type = "sphere" | "capsule" | "box" and their fields, m, world)',
+    )
+    p.add_argument(
+        "--obstacle-margin",
+        type=float,
+        default=0.03,
+        help="clearance every link keeps from the obstacles, METRES (default 0.03)",
+    )
     p.add_argument("--out", default="intervals.png", help="PNG file to write")
     p.set_defaults(handler=cmd_intervals)
 
@@ -95,13 +111,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=cmd_solve)
 
-    p = sub.add_parser("simulate", help="hands-on guidance simulation of scenario A or B")
-    p.add_argument("--scenario", default="A", help="A, B or a scenario .toml file")
+    p = sub.add_parser("simulate", help="hands-on guidance simulation of a scenario (A, B, microscope)")
+    p.add_argument("--scenario", default="A", help="A, B, microscope or a scenario .toml file")
     p.add_argument("--strategy", default=None, help="strategy (default qp)")
     p.add_argument("--config", default=None, help="TOML file of controller settings")
     p.add_argument("--duration-scale", type=float, default=1.0, help="run only this fraction of the path")
     p.add_argument("--out", required=True, help="folder for result.npz, summary.json, run.png")
     p.add_argument("--no-plot", action="store_true")
+    p.add_argument("--ignore-obstacles", action="store_true", help=IGNORE_OBSTACLES_HELP)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=cmd_simulate, dt=None)
 
@@ -115,6 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--strategies", default="qp,damped,fixed,rom,gradient")
     p.add_argument("--duration-scale", type=float, default=1.0)
     p.add_argument("--out", required=True, help="folder for comparison.md and comparison.png")
+    p.add_argument("--ignore-obstacles", action="store_true", help=IGNORE_OBSTACLES_HELP)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=cmd_compare)
 

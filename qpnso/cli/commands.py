@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +23,14 @@ from qpnso.cli.common import (
     robot_q,
     write_json,
 )
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+if TYPE_CHECKING:
+    from qpnso.model.obstacles import Obstacle
 
 
 # ---------------------------------------------------------------------- info
@@ -71,7 +80,9 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------- intervals
 def cmd_intervals(args: argparse.Namespace) -> int:
-    """Plot every joint versus the arm angle for the tool pose of q (PNG)."""
+    """Plot every joint versus the arm angle for the tool pose of q (PNG); with ``--obstacles`` (a TOML file,
+    :func:`read_obstacles`) the intervals also keep every link ``--obstacle-margin`` metres from them and a panel
+    draws the links' clearance."""
     from qpnso.elbow.intervals import continuity_interval
     from qpnso.elbow.rom import ElbowConfig
     from qpnso.lab.plots import plot_intervals
@@ -83,11 +94,38 @@ def cmd_intervals(args: argparse.Namespace) -> int:
     robot = load_cli_robot(args, redundant=True)
     q = robot_q(args, robot)
     rom = ElbowConfig(half_width_deg=args.rom_half_width_deg, safety_margin_deg=args.safety_margin_deg)
-    iv = continuity_interval(robot, q)
-    path = plot_intervals(robot, q, rom=rom, out=args.out)
+    obstacles = read_obstacles(args.obstacles) if args.obstacles else ()
+    margin = args.obstacle_margin
+    iv = continuity_interval(robot, q, obstacles=obstacles, margin=margin)
+    path = plot_intervals(robot, q, rom=rom, out=args.out, obstacles=obstacles, margin=margin)
     span = "full circle" if iv.full_circle else f"[{np.degrees(iv.lo):.2f}, {np.degrees(iv.hi):.2f}] deg"
-    print(f"continuity interval {span} ({iv.method}); figure written to {path}")
+    keep_out = f", {len(obstacles)} obstacle(s) kept {margin:g} m away" if obstacles else ""
+    print(f"continuity interval {span} ({iv.method}{keep_out}); figure written to {path}")
     return 0
+
+
+def read_obstacles(path: str) -> tuple[Obstacle, ...]:
+    """The ``[[obstacles]]`` tables of a TOML file (``type = "sphere" | "capsule" | "box"`` and the fields of
+    :mod:`qpnso.model.obstacles`, m, world frame) as obstacles; a ConfigError names the file and the entry."""
+    from pathlib import Path
+
+    from qpnso.errors import ConfigError
+    from qpnso.model.obstacles import as_obstacles
+    from qpnso.settings import SettingError
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"obstacle file not found: {p}")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    if "obstacles" not in data:
+        raise ConfigError(f"{p}: no [[obstacles]] tables")
+    try:
+        return as_obstacles(data["obstacles"])
+    except SettingError as exc:
+        raise exc.within("", str(p)) from None
 
 
 # ---------------------------------------------------------------- trajectory
@@ -161,6 +199,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
     print_summary(result.summary, f"{robot.name}, strategy {cfg.strategy}, {args.trajectory} -> {args.out}")
     print_notes(result.messages)
     print_slow_ticks(result.summary, cfg.dt)
+    if result.first_obstacle is not None:
+        print(f"  obstacle: {result.first_obstacle.describe()}")
     if not result.ok:
         sys.stdout.flush()
         written = args.out + (f" and {args.summary}" if args.summary else "")
@@ -186,7 +226,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     result = simulate_scenario(
-        args.scenario, None, args.duration_scale, progress_bar(not args.quiet, "simulate"), settings
+        args.scenario,
+        None,
+        args.duration_scale,
+        progress_bar(not args.quiet, "simulate"),
+        settings,
+        ignore_obstacles=args.ignore_obstacles,
     )
     strategy = settings.get("strategy", sc.controller.get("strategy", "qp"))
     out = Path(args.out)
@@ -194,7 +239,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": strategy, **result.summary})
     if plot:
         plot_run(result.arrays, out / "run.png", title=f"scenario {sc.name}, strategy {strategy}")
-    print_summary(result.summary, f"scenario {sc.name} ({sc.description}), strategy {strategy} -> {out}")
+    title = f"scenario {sc.name} ({sc.description}), strategy {strategy}{_unknown_note(args)} -> {out}"
+    print_summary(result.summary, title)
     print_slow_ticks(result.summary, float(settings.get("dt", sc.controller.get("dt", 1e-3))))
     if not args.no_plot and not plot:
         print(f"qpnso: note: figure {out / 'run.png'} skipped: {NO_MATPLOTLIB}", file=sys.stderr)
@@ -245,11 +291,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    """Several strategies on one scenario: one table (Markdown) and one figure."""
+    """Several strategies on one scenario: one table (Markdown) and one figure.
+
+    A strategy whose run stops with an error (e.g. it drives a joint past its limits, which the controller
+    refuses) gets a row saying so; the others are run, and the exit status is then 1."""
     from pathlib import Path
 
     from qpnso.control.config import STRATEGIES
-    from qpnso.errors import ConfigError
+    from qpnso.errors import ConfigError, QpnsoError
     from qpnso.lab.plots import plot_comparison
     from qpnso.lab.scenarios import load_scenario, simulate_scenario
 
@@ -261,33 +310,57 @@ def cmd_compare(args: argparse.Namespace) -> int:
     plot = have_matplotlib()
     if not plot:
         print(f"qpnso: note: {NO_MATPLOTLIB}: comparison.png will be skipped", file=sys.stderr)
-    runs, rows = {}, []
+    runs, rows, failed = {}, [], []
     for name in strategies:
-        result = simulate_scenario(args.scenario, name, args.duration_scale, progress_bar(not args.quiet, name))
+        try:
+            result = simulate_scenario(
+                args.scenario,
+                name,
+                args.duration_scale,
+                progress_bar(not args.quiet, name),
+                ignore_obstacles=args.ignore_obstacles,
+            )
+        except QpnsoError as exc:
+            rows.append((name, {"error": str(exc)}))
+            failed.append(f"strategy {name}: {exc}")
+            continue
         runs[name] = result.arrays
         rows.append((name, result.summary))
     out = Path(args.out)
-    table = comparison_table(rows, sc)
+    table = comparison_table(rows, sc, _unknown_note(args))
     out.mkdir(parents=True, exist_ok=True)
     (out / "comparison.md").write_text(table + "\n")
-    if plot:
+    if plot and runs:
         plot_comparison(runs, out / "comparison.png", title=f"scenario {sc.name}: {sc.description}")
     print(table)
     if not plot:
         print(f"qpnso: note: figure {out / 'comparison.png'} skipped: {NO_MATPLOTLIB}", file=sys.stderr)
-    return 0
+    for line in failed:
+        print(f"qpnso: failed: {line}", file=sys.stderr)
+    return 1 if failed else 0
 
 
-def comparison_table(rows: list, sc) -> str:
+def _unknown_note(args: argparse.Namespace) -> str:
+    """`` (obstacles unknown to the controller)`` when ``--ignore-obstacles`` was given, else empty."""
+    return " (obstacles unknown to the controller)" if args.ignore_obstacles else ""
+
+
+def comparison_table(rows: list, sc, note: str = "") -> str:
+    """The Markdown table of ``rows`` (strategy, run summary; a summary ``{"error": ...}``: a row saying the run
+    stopped); with the room's obstacles (``sc.obstacles``), the coal clearance columns (:func:`clearance_cells`)."""
     margin = sc.controller.get("safety_margin_deg", 10.0)
+    room = bool(sc.obstacles)
     lines = [
-        f"scenario {sc.name} ({sc.description}), safety margin {margin:g} deg",
+        f"scenario {sc.name} ({sc.description}), safety margin {margin:g} deg{note}",
         "",
         "| strategy | Δ elbow mobility (deg) | Δc proximity (deg) | Δc ≥ margin | S smoothness | "
-        "tool error max (mm) | work per metre (N) | tick median (µs) |",
-        "|---|---|---|---|---|---|---|---|",
+        "tool error max (mm) | work per metre (N) | tick median (µs) |" + (CLEARANCE_HEAD if room else ""),
+        "|---|---|---|---|---|---|---|---|" + ("---|" * CLEARANCE_HEAD.count("|") if room else ""),
     ]
     for name, m in rows:
+        if "error" in m:
+            lines.append(f"| {name} | run stopped: {m['error']} |")
+            continue
         lines.append(
             f"| {name} | {m.get('elbow_mobility_deg', float('nan')):.1f} | "
             f"{m.get('constraint_proximity_deg', float('nan')):.1f} | "
@@ -295,8 +368,22 @@ def comparison_table(rows: list, sc) -> str:
             f"{m.get('smoothness', float('nan')):.0f} | "
             f"{1000 * m.get('tool_position_error_max_m', float('nan')):.2f} | "
             f"{m.get('user_work_per_metre_N', float('nan')):.2f} | {m.get('tick_time_median_us', float('nan')):.0f} |"
+            + (clearance_cells(m) if room else "")
         )
     return "\n".join(lines)
+
+
+CLEARANCE_HEAD = " clearance min (mm, coal) | at link, obstacle | penetration ticks | OBSTACLE ticks |"
+"""The comparison table's columns for a room with obstacles."""
+
+
+def clearance_cells(m: dict) -> str:
+    """A row's clearance cells from its summary (:func:`qpnso.lab.metrics.clearance_summary`)."""
+    return (
+        f" {1000 * m.get('clearance_min_m', float('nan')):.1f} | "
+        f"{m.get('clearance_min_link', '')}, {m.get('clearance_min_obstacle', '')} | "
+        f"{m.get('penetration_ticks', '')} | {m.get('obstacle_ticks', '')} |"
+    )
 
 
 # --------------------------------------------------------------------- study

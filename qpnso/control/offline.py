@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +17,7 @@ import numpy as np
 import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
-from qpnso.control.config import ControllerConfig
+from qpnso.control.config import ControllerConfig, Status
 from qpnso.control.controller import Controller
 from qpnso.control.trajectory import Trajectory
 from qpnso.errors import ConfigError, InputError, QpnsoError, UnreachableError
@@ -55,6 +55,54 @@ _COMPUTED_AFTER = ("mass", "friction_force", "tool_position_error", "tool_rotati
 """What :class:`Recorder` computes for a whole run at its end."""
 
 
+@dataclass(frozen=True)
+class ObstacleTick:
+    """A tick whose status had ``OBSTACLE`` (a link could not keep its margin from an obstacle, or overlapped
+    it), as the controller reported it: the tick's index (0-based) and time ``t`` (s), the link (its capsule's
+    name), the obstacle (its index in the controller's obstacles), the controller's clearance of that pair (m)
+    and the command's message; ``data_row`` the trajectory's data row the tick follows (:func:`data_row`; None:
+    no trajectory file, e.g. a simulation)."""
+
+    tick: int
+    t: float
+    link: str
+    obstacle: int
+    clearance: float
+    message: str
+    data_row: int | None = None
+
+    @classmethod
+    def of(cls, tick: int, t: float, cmd, ctrl: Controller) -> "ObstacleTick":
+        """The tick ``tick`` at ``t`` (s) just stepped by ``ctrl``, its command ``cmd``: the pair from the tick's
+        report (the one the command's clearance and message name)."""
+        report = ctrl.records.report[0]
+        capsule, obstacle = int(report["clear_capsule"]), int(report["clear_obstacle"])
+        link = ctrl.capsules.names[capsule] if ctrl.capsules is not None and capsule >= 0 else ""
+        return cls(tick, float(t), link, obstacle, float(cmd.clearance), cmd.message)
+
+    def summary(self) -> dict[str, Any]:
+        """Summary entries ``first_obstacle_tick``, ``_t_s``, ``_link``, ``_obstacle``, ``_clearance_m`` (and
+        ``_data_row`` when known)."""
+        out: dict[str, Any] = {
+            "first_obstacle_tick": self.tick,
+            "first_obstacle_t_s": float(f"{self.t:.12g}"),
+            "first_obstacle_link": self.link,
+            "first_obstacle_obstacle": self.obstacle,
+            "first_obstacle_clearance_m": self.clearance,
+        }
+        if self.data_row is not None:
+            out["first_obstacle_data_row"] = self.data_row
+        return out
+
+    def describe(self) -> str:
+        """One line: where the first ``OBSTACLE`` tick was and what the controller said."""
+        row = f", data row {self.data_row}" if self.data_row is not None else ""
+        return (
+            f"first OBSTACLE tick {self.tick} (t = {self.t:.6g} s{row}): {self.link or 'a link'} "
+            f"{self.clearance:.4f} m from obstacle {self.obstacle}; {self.message}"
+        )
+
+
 @dataclass
 class RunResult:
     """Arrays over ticks of one run (rad, m, s, kg, N; world frame) and its summary.
@@ -62,13 +110,15 @@ class RunResult:
     ``failure`` is empty unless the run finished but failed its check (for
     :func:`solve_trajectory`: the tool left the trajectory by more than the
     tolerance); it is then one line saying where and by how much, and
-    ``summary["result"]`` is ``"failed"``.
+    ``summary["result"]`` is ``"failed"``.  ``first_obstacle`` is the first tick
+    whose status had ``OBSTACLE`` (None: none had).
     """
 
     arrays: dict[str, np.ndarray]
     summary: dict[str, Any] = field(default_factory=dict)
     messages: list[str] = field(default_factory=list)
     failure: str = ""
+    first_obstacle: ObstacleTick | None = None
 
     @property
     def ok(self) -> bool:
@@ -131,9 +181,10 @@ def config_values(path: str | Path | None, overrides: dict | None = None) -> dic
 
     The file's keys and value types are checked here, the error naming the file and
     the key.  Beside a ``[controller]`` table the top level may hold only the other
-    tables of a scenario file (``[scenario]``, ``[start]``, ``[path]``: a scenario file
-    is a valid config file); a setting there, or given both at the top level and under
-    ``[controller]``, is an error rather than silently dropped.
+    tables of a scenario file (``[scenario]``, ``[start]``, ``[path]``, ``[[obstacles]]``:
+    a scenario file is a valid config file, its ``[[obstacles]]`` going to the controller
+    with its ``[controller]`` settings); a setting there, or given both at the top level
+    and under ``[controller]``, is an error rather than silently dropped.
     """
     from qpnso.lab.scenarios import SCENARIO_TABLES
     from qpnso.settings import SettingError, check_table, show
@@ -169,6 +220,8 @@ def config_values(path: str | Path | None, overrides: dict | None = None) -> dic
                         f"(top-level tables: {', '.join(tables)}); controller settings go under "
                         f"[controller]",
                     )
+            if "obstacles" in data:  # (a scenario file's [[obstacles]]: the room's, given to the controller)
+                values = {**values, "obstacles": data["obstacles"]}
         values = dict(values)
         check_table(ControllerConfig, values, str(p))
     values.update({k: v for k, v in (overrides or {}).items() if v is not None})
@@ -246,6 +299,7 @@ class Recorder:
         ctrl.cost.felt_function()  # (made now: a background compile of it runs during the run)
         self.rec: dict[str, list] = {k: [] for k in _TICK_KEYS}
         self.messages: list[str] = []
+        self.first_obstacle: ObstacleTick | None = None
 
     def add(
         self, t: float, q: np.ndarray, cmd, tool: pin.SE3 | tuple, ref: pin.SE3 | tuple, **extra: np.ndarray
@@ -276,10 +330,12 @@ class Recorder:
             rec.setdefault(key, []).append(value)
         if cmd.message and (not self.messages or not self.messages[-1].endswith(cmd.message)):
             self.messages.append(f"t={t:.3f}s: {cmd.message}")
+        if self.first_obstacle is None and cmd.status & Status.OBSTACLE:
+            self.first_obstacle = ObstacleTick.of(len(rec["t"]) - 1, t, cmd, self.ctrl)
 
     def result(self) -> RunResult:
-        """The arrays and their summary (docs/method.md §9 metrics, status counts, felt mass and friction)."""
-        from qpnso.control.config import Status
+        """The arrays and their summary (docs/method.md §9 metrics, status counts, felt mass and friction, the
+        first ``OBSTACLE`` tick if any: :meth:`ObstacleTick.summary`)."""
         from qpnso.lab.metrics import summarize_run
 
         arrays = {k: np.asarray(v) for k, v in self.rec.items()}
@@ -293,7 +349,9 @@ class Recorder:
         flags = {f.name: f.value for f in Status if f.value and f.name is not None}  # (members are named)
         summary = summarize_run(arrays, flags, dt=self.ctrl.config.dt)
         summary.update(feel_summary(arrays))
-        return RunResult(arrays, summary, self.messages)
+        if self.first_obstacle is not None:
+            summary.update(self.first_obstacle.summary())
+        return RunResult(arrays, summary, self.messages, first_obstacle=self.first_obstacle)
 
 
 _TICK_KEYS = tuple(k for k in RESULT_KEYS if k not in _COMPUTED_AFTER) + ("tool_rotation", "ref_rotation")
@@ -333,6 +391,9 @@ def solve_trajectory(
     more than ``tool_tolerance_m`` (m) or ``tool_tolerance_rad`` (rad), the
     summary's ``result`` is ``"failed"`` and ``RunResult.failure`` says at which
     tick and which trajectory sample (:func:`tool_error_check`); else ``"ok"``.
+    A tick flagged ``OBSTACLE`` does not fail the run (the tool kept its path):
+    ``RunResult.first_obstacle`` and the summary's ``first_obstacle_*`` name the
+    first (:class:`ObstacleTick`, with its data row).
     """
     cfg = config or ControllerConfig()
     robot.require_redundant_arm()
@@ -367,6 +428,9 @@ def solve_trajectory(
     result = recorder.result()
     verdict, result.failure = tool_error_check(result.arrays, traj.t, tool_tolerance_m, tool_tolerance_rad)
     result.summary.update(verdict)
+    if result.first_obstacle is not None:
+        result.first_obstacle = replace(result.first_obstacle, data_row=data_row(traj.t, result.first_obstacle.t))
+        result.summary.update(result.first_obstacle.summary())
     return result
 
 

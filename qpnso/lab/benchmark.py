@@ -3,8 +3,9 @@
 ``qpnso bench cost`` times ``cost.value`` + ``cost.gradient``;
 ``qpnso bench tick`` times ``Controller.step`` for every strategy with the tool held and with the tool
 moving on :class:`MovingTarget` (a 5 cm circle at 0.5 Hz and a rotation, the twist changing every tick),
-beside Pink's ``solve_ik`` (``pin-pink``, ProxQP) and mink's (``mink``, DAQP) on the same targets when
-they are installed, all rows taken in turns (:func:`interleaved`).  Compiled CasADi code is awaited
+the held ``qp`` tick also with four obstacles around the arm (:func:`obstacles_around`), beside Pink's
+``solve_ik`` (``pin-pink``, ProxQP) and mink's (``mink``, DAQP) on the same targets when they are installed,
+all rows taken in turns (:func:`interleaved`).  Compiled CasADi code is awaited
 before timing, so the figures are the steady state of a control loop.
 """
 
@@ -18,7 +19,9 @@ from typing import Callable
 import numpy as np
 import pinocchio as pin
 
+from qpnso.model.collision import has_capsules, link_capsules
 from qpnso.model.costs import CostModel, CostWeights
+from qpnso.model.obstacles import Box, Capsule, Obstacle, Sphere
 from qpnso.model.robot import Robot
 
 
@@ -200,14 +203,17 @@ def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None =
     strategies = strategies or STRATEGIES
     q0 = robot.sample_configuration()
     runs, notes = {}, {}
+    rows_of = {}  # (the obstacle row's controller: its keep-out rows are counted after the timing)
     for motion, make in (("held", held_tool_ticks), ("moving", moving_tool_ticks)):
         for name in strategies:
-            ctrl = Controller(robot, ControllerConfig(strategy=name))
-            ctrl.cost.wait_compiled()
-            ctrl.evaluate.wait_compiled()
-            ctrl.reset(q0)
+            ctrl = _ready(Controller(robot, ControllerConfig(strategy=name)), q0)
             row = f"step, strategy {name}, tool {motion}"
             runs[row], notes[row] = make(ctrl, q0), f"tool {motion}"
+            if name == "qp" and motion == "held" and has_capsules(robot):
+                around = obstacles_around(robot, q0)
+                ctrl = _ready(Controller(robot, ControllerConfig(strategy=name, obstacles=around)), q0)
+                row = f"step, strategy {name}, tool {motion}, {len(around)} obstacles"
+                runs[row], rows_of[row] = make(ctrl, q0), ctrl
         for peer, make_peer in (("Pink", pink_ticks), ("mink", mink_ticks)):
             made = make_peer(robot, q0, MovingTarget() if motion == "moving" else None)
             if made is not None:
@@ -215,7 +221,52 @@ def bench_tick(robot: Robot, n: int = 3000, strategies: tuple[str, ...] | None =
                 runs[row], notes[row] = made
     for run in runs.values():
         run(200)  # warm-up
-    return [Timing(name, seconds, note=notes[name]) for name, seconds in interleaved(runs, n).items()]
+    timed = interleaved(runs, n)
+    for row, ctrl in rows_of.items():
+        notes[row] = f"tool held, {int(ctrl.records.report[0]['obstacle_rows'])} keep-out rows (last tick)"
+    return [Timing(name, seconds, note=notes[name]) for name, seconds in timed.items()]
+
+
+def _ready(ctrl, q0: np.ndarray):
+    """``ctrl`` with its compiled code awaited, reset at ``q0`` (rad)."""
+    ctrl.cost.wait_compiled()
+    ctrl.evaluate.wait_compiled()
+    ctrl.reset(q0)
+    return ctrl
+
+
+OBSTACLE_GAP = 0.08
+"""m: how far :func:`obstacles_around` puts each obstacle's surface from its link's capsule: inside the default
+influence distance (0.15 m), clear of the default margin (0.03 m)."""
+
+
+def obstacles_around(robot: Robot, q: np.ndarray, gap: float = OBSTACLE_GAP) -> tuple[Obstacle, ...]:
+    """Four obstacles around the arm at ``q`` (rad), world frame, each ``gap`` m from one link capsule's surface
+    along the normal ``n`` of the plane of the last three links (upper arm, forearm, hand for the LWR4+): a
+    0.1 m cube beside the middle of link capsule 1 (the upper arm) on the ``+n`` side, one beside capsule 2 (the
+    forearm) on ``-n``, each turned to lie along its link; a sphere of 0.04 m radius beside the middle of the last
+    capsule (the hand) on ``+n``; a rod (capsule of 0.03 m radius) parallel to capsule 0 (the base) on ``-n``."""
+    caps = link_capsules(robot)
+    a, b = caps.segments(robot, q)
+    u = (b - a) / np.linalg.norm(b - a, axis=1)[:, None]
+    n = np.cross(u[-3], u[-2])
+    n /= np.linalg.norm(n)
+    mid = 0.5 * (a + b)
+
+    def off(k: int, side: float, size: float) -> np.ndarray:
+        return side * (caps.radius[k] + gap + size) * n
+
+    def cube(k: int, side: float) -> Box:
+        rot = np.column_stack([u[k], n, np.cross(u[k], n)])
+        return Box(center=tuple(mid[k] + off(k, side, 0.05)), half_extents=(0.05, 0.05, 0.05), rotation=rot.tolist())
+
+    last = caps.count - 1
+    return (
+        cube(1, 1.0),
+        cube(2, -1.0),
+        Sphere(center=tuple(mid[last] + off(last, 1.0, 0.04)), radius=0.04),
+        Capsule(a=tuple(a[0] + off(0, -1.0, 0.03)), b=tuple(b[0] + off(0, -1.0, 0.03)), radius=0.03),
+    )
 
 
 def pink_ticks(robot: Robot, q0: np.ndarray, target: MovingTarget | None = None) -> tuple[PeerRun, str] | None:

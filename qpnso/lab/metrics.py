@@ -7,7 +7,7 @@ times in s; forces in N.  Every function checks its input and raises
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -179,6 +179,41 @@ def timing_summary(seconds) -> dict[str, float]:
     a = _array(np.ravel(seconds), "seconds", 1) * 1e6
     p50, p95, p99 = np.percentile(a, [50, 95, 99])
     return {"median_us": float(p50), "p95_us": float(p95), "p99_us": float(p99), "max_us": float(a.max())}
+
+
+def clearance_summary(
+    t, distance, links: Sequence[str], status=None, obstacle_bit: int = 0
+) -> dict[str, float | int | str]:
+    """The least link–obstacle clearance of a run and how often a link was inside an obstacle.
+
+    ``t`` (N,) s; ``distance`` (N, links, obstacles) m, each link's distance to each obstacle per tick (negative:
+    penetration), e.g. coal's (:func:`qpnso.model.collision.clearances`); ``links`` names the links;
+    ``status`` (N,) int flags per tick with ``obstacle_bit`` the bit of the controller's obstacle status.
+
+    Keys: ``clearance_min_m`` (least over the run), ``clearance_min_link`` (its link's name),
+    ``clearance_min_obstacle`` (its obstacle's index), ``clearance_min_tick`` and ``clearance_min_t_s`` (the
+    first tick with it), ``penetration_ticks`` (ticks with a distance < 0) and, with ``status``,
+    ``obstacle_ticks`` (ticks whose status has ``obstacle_bit``).
+    """
+    ts = _array(t, "t", 1)
+    d = _array(distance, "distance", 3)
+    _same_length(t=ts, distance=d)
+    if d.shape[1] != len(links) or d.shape[2] == 0:
+        raise InputError(f"distance must be (N, {len(links)} links, obstacles >= 1), got {d.shape}")
+    k, link, obstacle = (int(i) for i in np.unravel_index(int(np.argmin(d)), d.shape))
+    out: dict[str, float | int | str] = {
+        "clearance_min_m": float(d[k, link, obstacle]),
+        "clearance_min_link": str(links[link]),
+        "clearance_min_obstacle": int(obstacle),
+        "clearance_min_tick": int(k),
+        "clearance_min_t_s": float(ts[k]),
+        "penetration_ticks": int(np.count_nonzero((d < 0).any(axis=(1, 2)))),
+    }
+    if status is not None:
+        s = np.asarray(status).astype(np.int64)
+        _same_length(t=ts, status=s)
+        out["obstacle_ticks"] = int(np.count_nonzero(s & int(obstacle_bit)))
+    return out
 
 
 def summarize_run(

@@ -1,15 +1,23 @@
-"""The elbow paper's hands-on scenarios A and B ([E] II-D, docs/method.md §9).
+"""The elbow paper's hands-on scenarios A and B ([E] II-D, docs/method.md §9), and B with a microscope.
 
 A scenario file (TOML, ``examples/scenarios/*.toml``) gives the robot, the tool
 pose at the centre of the guidance path, the start arm angle and branch (the
-start configuration is the closed-form IK there), the path, and controller
-settings.  :func:`run_scenario` simulates one strategy on it and returns the
-run's metrics.
+start configuration is the closed-form IK there), the path, controller
+settings (``[controller]``) and the room's keep-out volumes: ``[[obstacles]]``
+tables at the TOP LEVEL of the file (``type = "box"`` etc., world frame, m;
+:mod:`qpnso.model.obstacles`), not inside ``[controller]`` (refused there).
+The obstacles reach the controller (``ControllerConfig.obstacles``) unless a
+run ignores them (``ignore_obstacles``, ``--ignore-obstacles``); either way the
+simulation measures every link's clearance to them with coal
+(:func:`qpnso.lab.simulation.simulate`).  A scenario file is also a valid
+``--config`` file: its ``[[obstacles]]`` go to the controller with its
+``[controller]`` settings (:func:`qpnso.control.offline.config_values`).
+:func:`run_scenario` simulates one strategy on it and returns the run's metrics.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,6 +26,7 @@ import pinocchio as pin
 
 from qpnso.control.trajectory import Trajectory, guidance_path
 from qpnso.errors import ConfigError
+from qpnso.model.obstacles import Obstacle
 from qpnso.model.robot import Robot, load_robot
 from qpnso.settings import SettingError, check, from_dict, out_of_range
 
@@ -47,6 +56,7 @@ class Scenario:
     path_size: float = 0.08
     path_speed: float = 0.05
     controller: dict = field(default_factory=dict)
+    obstacles: tuple[Obstacle, ...] = ()  # the room's keep-out volumes (world frame, m)
 
     def tool_pose(self) -> pin.SE3:
         """Tool pose at the path centre (world frame)."""
@@ -111,12 +121,14 @@ class PathTable:
 @dataclass(frozen=True)
 class ScenarioFile:
     """A scenario file's tables, type-checked by :func:`qpnso.settings.from_dict`
-    (``controller`` holds :class:`qpnso.control.config.ControllerConfig` settings)."""
+    (``controller`` holds :class:`qpnso.control.config.ControllerConfig` settings but not ``obstacles``, which
+    are top-level ``[[obstacles]]`` tables)."""
 
     scenario: ScenarioTable
     start: StartTable
     path: PathTable = field(default_factory=PathTable)
     controller: dict = field(default_factory=dict)
+    obstacles: tuple[Obstacle, ...] = ()
 
     def __post_init__(self) -> None:
         check(self)
@@ -148,8 +160,10 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
     f = from_dict(ScenarioFile, data, str(p))
+    if "obstacles" in f.controller:
+        raise SettingError(str(p), "controller.obstacles", "a scenario's obstacles go at the top level: [[obstacles]]")
     try:
-        ControllerConfig.from_dict(f.controller)
+        ControllerConfig.from_dict({**f.controller, "obstacles": f.obstacles})
     except SettingError as exc:
         raise exc.within("controller", str(p)) from None
     return Scenario(
@@ -163,6 +177,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         path_size=f.path.size,
         path_speed=f.path.speed,
         controller=dict(f.controller),
+        obstacles=f.obstacles,
     )
 
 
@@ -178,12 +193,19 @@ def run_scenario(
 
 
 def simulate_scenario(
-    name: str, strategy: str | None = None, duration_scale: float = 1.0, progress=None, settings: dict | None = None
+    name: str,
+    strategy: str | None = None,
+    duration_scale: float = 1.0,
+    progress=None,
+    settings: dict | None = None,
+    ignore_obstacles: bool = False,
 ) -> "RunResult":
     """Simulate scenario ``name``: the per-tick arrays and summary (:class:`qpnso.control.offline.RunResult`).
 
-    Controller settings: the scenario file's ``[controller]``, then ``settings``
-    (e.g. a user's config file and CLI flags), then ``strategy`` if given.
+    Controller settings: the scenario file's ``[controller]`` and ``[[obstacles]]``, then ``settings``
+    (e.g. a user's config file and CLI flags), then ``strategy`` if given.  The obstacles so resolved are the
+    room's: the simulation measures every link's clearance to them (coal); with ``ignore_obstacles`` the
+    controller does not get them (it runs as if the room were empty).
     """
     from qpnso.control.config import ControllerConfig
     from qpnso.control.controller import Controller
@@ -191,11 +213,14 @@ def simulate_scenario(
 
     sc = load_scenario(name)
     robot = load_robot(sc.robot)
-    values = {**sc.controller, **(settings or {})}
+    values = {**sc.controller, **({"obstacles": sc.obstacles} if sc.obstacles else {}), **(settings or {})}
     if strategy is not None:
         values["strategy"] = strategy
     path = sc.path()
     if duration_scale < 1.0:
         path = path.window(path.t[0], path.t[0] + duration_scale * path.duration)
-    ctrl = Controller(robot, ControllerConfig.from_dict(values))
-    return simulate(ctrl, path, sc.start(robot), progress=progress)
+    config = ControllerConfig.from_dict(values)
+    room = config.obstacles
+    if ignore_obstacles:
+        config = replace(config, obstacles=())
+    return simulate(Controller(robot, config), path, sc.start(robot), progress=progress, room=room)

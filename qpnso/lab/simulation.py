@@ -12,19 +12,34 @@ The hand is a Cartesian spring–damper (world frame, tool point) towards the
 guidance path; its wrench is what the surgeon feels and does work against
 ([M 24]).  The controller runs in hands-on mode: its level-1 reference is the
 tool's measured pose and twist, so it never fights the hand.
+
+With keep-out volumes in the room, every tick's distance of each link capsule to
+each of them is measured independently of the controller, with coal
+(:func:`qpnso.model.collision.clearances`), at the configuration the tick starts
+from: the controller's own distances (:mod:`qpnso.model.distance`) are what is
+being checked, and the room may hold obstacles the controller was not given.
+Measured cost (LWR4+, 4 capsules, the microscope box, strategy ``qp``, 3.6 s of
+scenario B's path, CPU time per simulated tick, median of 5 interleaved runs on a
+shared 2-core VM): 426 µs without the measurement, 554 µs with it (+30 %; the
+coal call alone 81 µs) — a simulation 1.3× as long, so every tick is measured.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
 
+from qpnso.control.config import Status
 from qpnso.control.controller import Controller
 from qpnso.control.offline import Recorder, RunResult
 from qpnso.control.trajectory import Trajectory
 from qpnso.errors import QpnsoError
+from qpnso.lab.metrics import clearance_summary
+from qpnso.model.obstacles import Obstacle, as_obstacles
+from qpnso.model.robot import Robot
 from qpnso.settings import check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
 
@@ -89,7 +104,12 @@ class SimulationConfig:
 
 
 def simulate(
-    controller: Controller, path: Trajectory, q0: np.ndarray, config: SimulationConfig | None = None, progress=None
+    controller: Controller,
+    path: Trajectory,
+    q0: np.ndarray,
+    config: SimulationConfig | None = None,
+    progress=None,
+    room: Sequence[Obstacle] | None = None,
 ) -> RunResult:
     """Simulate hands-on guidance of the tool along ``path`` from ``q0`` (rad).
 
@@ -97,9 +117,17 @@ def simulate(
     ``dq_measured`` (rad/s), ``hand_wrench`` (N, N·m) and ``tool_twist``
     (m/s, rad/s), and the run's summary (metrics of docs/method.md §9, felt mass and
     friction every 10 ticks).
+
+    ``room``: the keep-out volumes of the room (world frame, m; default: the controller's own).  When there are
+    any, each tick records ``link_clearance`` (links, obstacles), m, coal's distances at the tick's ``q``, and
+    ``controller_clearance`` (m), the controller's own least clearance (``Command.clearance``; inf when it was not
+    given the obstacles); the summary gets :func:`qpnso.lab.metrics.clearance_summary`'s keys (from coal's
+    distances) with ``room_obstacles`` and ``controller_obstacles`` (how many the controller was given).
     """
     cfg = config or SimulationConfig()
     robot = controller.robot
+    room = controller.obstacles if room is None else as_obstacles(room)
+    measure, links = clearance_meter(robot, room)
     model = robot.model.copy()
     if cfg.armature > 0:
         model.armature = np.full(model.nv, cfg.armature)
@@ -120,8 +148,17 @@ def simulate(
         cmd = controller.step(q, dq, tool_twist=twist, tool_pose=pose)
         ref = path.sample(t)
         wrench = cfg.hand.wrench(ref, tool)
+        measured = {"link_clearance": measure(q), "controller_clearance": np.asarray(cmd.clearance)} if measure else {}
         recorder.add(
-            t, q, cmd, pose, pin.SE3(ref[1], ref[0]), dq_measured=dq.copy(), hand_wrench=wrench, tool_twist=twist
+            t,
+            q,
+            cmd,
+            pose,
+            pin.SE3(ref[1], ref[0]),
+            dq_measured=dq.copy(),
+            hand_wrench=wrench,
+            tool_twist=twist,
+            **measured,
         )
         for _ in range(cfg.substeps):
             q, dq = _integrate(model, data, q, dq, cmd.tau, robot, tool_id, h, cfg.hand, ref)
@@ -129,7 +166,29 @@ def simulate(
             raise SimulationError(f"the simulation diverged at t = {t:.3f} s (try more substeps)")
         if progress is not None:
             progress(k + 1, n_ticks)
-    return recorder.result()
+    result = recorder.result()
+    if measure:
+        a = result.arrays
+        result.summary.update(
+            clearance_summary(a["t"], a["link_clearance"], links, a["status"], Status.OBSTACLE.value),
+            room_obstacles=len(room),
+            controller_obstacles=len(controller.obstacles),
+        )
+    return result
+
+
+def clearance_meter(
+    robot: Robot, room: Sequence[Obstacle]
+) -> tuple[Callable[[np.ndarray], np.ndarray] | None, tuple[str, ...]]:
+    """``(measure, links)``: ``measure(q)`` the distances (m) of every link capsule to every obstacle of ``room``
+    at ``q`` (rad), (links, obstacles), by coal (:func:`qpnso.model.collision.clearances`), and the links' names;
+    ``(None, ())`` for an empty room."""
+    if not room:
+        return None, ()
+    from qpnso.model.collision import clearances, geometry_model
+
+    geom = geometry_model(robot)
+    return (lambda q: clearances(robot, q, room, geom)), tuple(o.name for o in geom.geometryObjects)
 
 
 def _tool_state(model, data, q, dq, tool_id) -> tuple:

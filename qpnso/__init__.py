@@ -41,6 +41,7 @@ from qpnso.errors import (
     UnreachableError,
 )
 from qpnso.model.costs import TERMS, CostModel, CostWeights, DirectionalCost
+from qpnso.model.obstacles import Box, Capsule, Sphere
 from qpnso.model.robot import JointFriction, Robot, load_robot
 from qpnso.model.symbolic import SymbolicModel
 from qpnso.qp import HierarchicalQP, Level, QPSettings
@@ -51,6 +52,8 @@ __all__ = [
     "STRATEGIES",
     "TERMS",
     "ArmAngle",
+    "Box",
+    "Capsule",
     "Branch",
     "ClippedRom",
     "Command",
@@ -91,6 +94,7 @@ __all__ = [
     "RobotNotFoundError",
     "SingularityError",
     "SolverError",
+    "Sphere",
     "SymbolicModel",
     "TrajectoryError",
     "UnreachableError",

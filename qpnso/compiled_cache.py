@@ -231,7 +231,7 @@ def announce_compile(what: str, seconds: float, note: str = "once") -> None:
 
 def announce_numba_if_cold() -> bool:
     """Say that the control tick's kernels compile now if :func:`numba_cache_is_cold`; whether it did.
-    ``Controller._warm_up`` calls it before its dry ticks."""
+    ``Controller.__init__`` calls it first (building its params already runs kernels)."""
     if not numba_cache_is_cold():
         return False
     announce_compile("the control tick's kernels for this machine", NUMBA_COLD_SECONDS)

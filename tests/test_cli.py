@@ -198,7 +198,8 @@ def test_bench_prints_median_and_tails(capsys, what) -> None:
     assert rows and all(0 < a <= b <= c <= d for a, b, c, d in values)
     if what == "tick":
         for strategy in ("qp", "damped"):
-            assert sum(f"strategy {strategy}, tool " in r for r in rows) == 2
+            assert sum(f"strategy {strategy}, tool " in r and "obstacles" not in r for r in rows) == 2
+        assert sum("strategy qp, tool held, 4 obstacles" in r for r in rows) == 1  # (the keep-out rows' cost)
 
 
 # ------------------------------------------------------------------- issue 13, items 7 and 12

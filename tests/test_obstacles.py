@@ -336,3 +336,40 @@ def test_a_tool_pushed_into_an_obstacle_says_obstacle(robot, caps) -> None:
             break
     assert cmd.clearance < -0.01 and all(statuses)  # the tool went on into it, saying so every tick
     assert np.linalg.norm(robot.tool_pose(q).translation - T.translation) > 0.04  # (the tool was not stopped)
+
+
+def test_the_torque_wall_is_the_rows_damper_projected(robot, caps) -> None:
+    """A measured motion toward an obstacle faster than its rows allow adds ``Nᵀ·Σ D_ob·(l − ∇dᵀq̇)₊·∇d`` to
+    the torque command (∇d, l from coal's distances and the damper; N the dynamically consistent projector,
+    by NumPy); a motion away adds nothing."""
+    q = robot.sample_configuration()
+    p = caps.points(robot, ik(robot, robot.tool_pose(q), arm_angle(robot, q) + 0.8, branch(robot, q)))
+    sphere = Sphere(tuple(p[2]), 0.03)
+    cfg = ControllerConfig()
+    d = clearances(robot, q, [sphere])[:, 0]
+    near = np.flatnonzero(d < cfg.obstacle_influence)
+    h = 1e-6
+    grads = [
+        np.array(
+            [
+                clearances(robot, q + h * e, [sphere])[c, 0] - clearances(robot, q - h * e, [sphere])[c, 0]
+                for e in np.eye(7)
+            ]
+        )
+        / (2 * h)
+        for c in near
+    ]
+    toward = -0.5 * grads[0] / (grads[0] @ grads[0])  # the nearest link at 0.5 m/s into the sphere
+    taus = {}
+    for damping in (0.0, 500.0):
+        ctrl = Controller(robot, ControllerConfig(strategy="damped", obstacles=[sphere], obstacle_damping=damping))
+        ctrl.reset(q)
+        taus[damping] = [ctrl.step(q, dq=v).tau for v in (toward, -toward)]
+    gain = cfg.obstacle_speed / (cfg.obstacle_influence - cfg.obstacle_margin)
+    wall = sum(500.0 * max(-gain * (d[c] - cfg.obstacle_margin) - g @ toward, 0.0) * g for c, g in zip(near, grads))
+    A, J = robot.mass_matrix(q), robot.jacobian(q)
+    Ai = np.linalg.inv(A)
+    expected = (np.eye(7) - J.T @ np.linalg.solve(J @ Ai @ J.T, J @ Ai)) @ wall
+    assert len(near) >= 1 and np.abs(expected).max() > 1.0
+    np.testing.assert_allclose(taus[500.0][0] - taus[0.0][0], expected, atol=1e-6 * np.abs(expected).max())
+    np.testing.assert_allclose(taus[500.0][1], taus[0.0][1], atol=1e-12)  # (moving away: no wall)

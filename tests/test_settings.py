@@ -314,7 +314,7 @@ def _scenario(tmp_path: Path, old: str, new: str) -> Path:
             "cost_filter_time = 0.3\ninterval_period = 2.5",
             "controller.interval_period = 2.5: expected an integer",
         ),
-        ("[path]", "[paths]\n[path]", "unknown key 'paths'; valid keys: controller, path, scenario, start"),
+        ("[path]", "[paths]\n[path]", "unknown key 'paths'; valid keys: controller, obstacles, path, scenario, start"),
     ],
 )
 def test_scenario_file_errors_name_the_file_and_the_key(tmp_path, old, new, message) -> None:

@@ -123,6 +123,8 @@ class ControllerConfig:
     obstacle_speed: float = 0.5  # m/s, ξ: the approach speed the rows' damper allows at d_i (0 at d_s)
     obstacle_recovery_speed: float = 0.05  # m/s: the largest speed of a link back out of the margin
     obstacle_weight_ratio: float = 100.0  # the obstacle rows' slack weight over the elbow rows' (slack_weight)
+    obstacle_damping: float = 500.0  # N·s/m: the torque command's wall on a link approaching an obstacle faster
+    # than its row allows (every strategy's torque; rows.obstacles.keep_out_torque)
 
     def __post_init__(self) -> None:
         """Types first (:func:`qpnso.settings.check`: ``weights``/``qp_settings`` may be dicts),
@@ -161,7 +163,13 @@ class ControllerConfig:
             raise out_of_range(
                 self, "joint_limit_gain", f"must be <= 1/dt = {1 / self.dt:g} 1/s (else a joint could cross its limit)"
             )
-        for name in ("cost_filter_time", "posture_filter_time", "safety_margin_deg", "q_limit_tolerance_deg"):
+        for name in (
+            "cost_filter_time",
+            "posture_filter_time",
+            "safety_margin_deg",
+            "q_limit_tolerance_deg",
+            "obstacle_damping",
+        ):
             if getattr(self, name) < 0:
                 raise out_of_range(self, name, "must be >= 0")
         if self.interval_period < 1:

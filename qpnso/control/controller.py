@@ -130,6 +130,8 @@ class Controller:
         from qpnso.control.strategies import make_strategy
 
         robot.require_redundant_arm()  # ModelError naming the arm, instead of ROM_EMPTY ticks
+        announce_numba_if_cold()  # one line on stderr when the kernels compile now (empty cache): building the
+        # params already runs some (the closed-form IK of the keep-out record)
         self.robot = robot
         self.config = config or ControllerConfig()
         cfg = self.config
@@ -181,7 +183,6 @@ class Controller:
         :mod:`qpnso.linalg`, :mod:`qpnso.qp` and :mod:`qpnso.control.tick` compile (seconds, once per machine,
         then cached on disk) or load here, never in a control tick — on the line fast path, the general
         cascade (:meth:`HierarchicalQP.warm_up`) and with the elbow dropped."""
-        announce_numba_if_cold()  # one line on stderr when the kernels compile now (empty cache)
         self.qp.warm_up(line=False, problem=self.records.problem)  # the general cascade's kernels (the dry ticks
         # below may not reach it)
         q = self.robot.sample_configuration()

@@ -52,7 +52,7 @@ from qpnso.control.params import params_dtype
 from qpnso.control.rows.elbow import elbow_row
 from qpnso.control.rows.joint_limits import velocity_bounds
 from qpnso.control.rows.kind import add_rows
-from qpnso.control.rows.obstacles import obstacle_bits, obstacle_rows, soft_violation
+from qpnso.control.rows.obstacles import keep_out_torque, obstacle_bits, obstacle_rows, soft_violation
 from qpnso.control.state import PREDICTION_TOLERANCE, sanitize_state, state_dtype
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, nullspace_part
 from qpnso.qp.problem import SOLVED, problem_dtype, solution_dtype
@@ -420,6 +420,7 @@ def finish_tick(q, dq_meas, tick):
     dq[:] = S.x
     c.q_des[:] = q + P.dt * dq
     tau_null = c.spring + c.stiffness_dt * dq + c.damping * (c.damp_cmd * dq - dq_meas)
+    keep_out_torque(t.problem, r, P, dq_meas, tau_null)  # (the keep-out rows' wall: every strategy)
     c.tau[:] = s.g + dynamically_consistent_projection(s.A, s.J, tau_null)[0]
     bits = r.bits
     if S.outcome == SOLVED:

@@ -52,13 +52,15 @@ OBSTACLE_END = -1000
 class KeepOut:
     """The settings of the keep-out rows (from :class:`~qpnso.control.config.ControllerConfig`): ``margin`` d_s
     (m), ``influence`` d_i (m), ``speed`` ξ (m/s: the approach speed the damper allows at d_i), the largest
-    ``recovery_speed`` (m/s) back out of the margin, and the rows' slack weight relative to the elbow rows'."""
+    ``recovery_speed`` (m/s) back out of the margin, the rows' slack weight relative to the elbow rows', and the
+    ``damping`` (N·s/m) of the torque wall (:func:`qpnso.control.rows.obstacles.keep_out_torque`)."""
 
     margin: float = 0.03
     influence: float = 0.15
     speed: float = 0.5
     recovery_speed: float = 0.05
     weight_ratio: float = 100.0
+    damping: float = 500.0
 
     @classmethod
     def of(cls, config) -> "KeepOut":
@@ -68,6 +70,7 @@ class KeepOut:
             config.obstacle_speed,
             config.obstacle_recovery_speed,
             config.obstacle_weight_ratio,
+            config.obstacle_damping,
         )
 
 
@@ -83,6 +86,7 @@ def keep_out_dtype(points: int, capsules: int, room: int) -> np.dtype:
             ("gain", f8),  # ξ/(d_i − d_s) (1/s)
             ("recovery_speed", f8),  # m/s
             ("row_scale", f8),  # √(weight ratio): the rows' scale in level 2 (slack weight × ratio)
+            ("damping", f8),  # D_ob (N·s/m): the torque wall on a row the measured motion breaks
             ("n_capsules", i8),
             ("n_obstacles", i8),
             ("cap_a", i8, c),  # chain points of each capsule's ends
@@ -119,6 +123,7 @@ def keep_out_record(
     g["margin"], g["influence"], g["recovery_speed"] = s.margin, s.influence, s.recovery_speed
     g["gain"] = s.speed / (s.influence - s.margin)
     g["row_scale"] = math.sqrt(s.weight_ratio)
+    g["damping"] = s.damping
     g["n_capsules"] = capsules.count
     g["cap_a"][: capsules.count], g["cap_b"][: capsules.count] = capsules.a, capsules.b
     g["cap_radius"][: capsules.count] = capsules.radius

@@ -67,6 +67,26 @@ def obstacle_rows(pb, s, P, r):
 
 
 @njit(cache=True)
+def keep_out_torque(pb, r, P, dq_meas, tau_null):
+    """Add to the null-space torque ``tau_null`` (N·m, in place) the keep-out rows' wall: for each row the
+    measured ``dq_meas`` (rad/s) breaks (``∇dᵀq̇ < l``, the link approaching faster than its damper allows),
+    ``D_ob·(l − ∇dᵀq̇)·∇d`` (D_ob = ``P.geo.damping``, N·s/m; ∇d in m/rad).  A strategy whose torque law
+    follows its QP command (``qp``) meets the rows already (the term is about 0); the baselines' laws (the
+    papers') do not see the rows, and without it their arms went into a known obstacle in the hands-on
+    simulation.  The tick's ``Nᵀ`` keeps it off the tool."""
+    G = P.geo
+    scale = G.row_scale
+    for k in range(r.obstacle_first, r.obstacle_first + r.obstacle_rows):
+        v = 0.0
+        for j in range(dq_meas.shape[0]):
+            v += pb.soft_C[k, j] * dq_meas[j]
+        deficit = (pb.soft_l[k] - v) / scale
+        if deficit > 0.0:
+            for j in range(dq_meas.shape[0]):
+                tau_null[j] += G.damping * deficit * pb.soft_C[k, j] / scale
+
+
+@njit(cache=True)
 def weakest_row(pb, first, end):
     """The keep-out row among soft rows ``first … end − 1`` with the least lower bound (the farthest pair)."""
     k = first

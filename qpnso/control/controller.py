@@ -467,6 +467,7 @@ class Controller:
             interval = self._new_walk(q).advance(math.inf)
         except QpnsoError:
             return  # (none known: the first tick's elbow_advance asks again)
+        assert interval is not None  # (advanced to the end)
         store_interval(m, interval.lo, interval.hi, interval.full_circle, state.tool_rotation, state.tool_position)
 
     def __repr__(self) -> str:

@@ -546,7 +546,9 @@ def _obstacle_end(
         else:
             q_out, ns_out, code = q_mid, arm_angle(robot, q_mid), mid_code
         yield
-    return q_in, end_cause(code, clear.capsules.names)
+    cause = end_cause(code, clear.capsules.names)
+    assert cause is not None  # (an obstacle code: never NO_END)
+    return q_in, cause
 
 
 def _walk(

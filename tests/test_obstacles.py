@@ -373,3 +373,56 @@ def test_the_torque_wall_is_the_rows_damper_projected(robot, caps) -> None:
     assert len(near) >= 1 and np.abs(expected).max() > 1.0
     np.testing.assert_allclose(taus[500.0][0] - taus[0.0][0], expected, atol=1e-6 * np.abs(expected).max())
     np.testing.assert_allclose(taus[500.0][1], taus[0.0][1], atol=1e-12)  # (moving away: no wall)
+
+
+def urdf_with_collisions(tmp_path) -> str:
+    """The LWR4+ URDF with collision elements: a cylinder on each arm link, a sphere on the base and link 7."""
+    text = (qpnso.model.robot.MODELS_DIR / "lwr4p.urdf").read_text()
+    shapes = {
+        "base_link": '<origin xyz="0 0 0.05"/><geometry><sphere radius="0.09"/></geometry>',
+        "link_7": '<origin xyz="0 0 0.02"/><geometry><sphere radius="0.05"/></geometry>',
+    }
+    for k in range(1, 7):
+        cylinder = f'<cylinder radius="0.0{5 + k % 3}" length="0.2"/>'
+        shapes[f"link_{k}"] = f'<origin xyz="0 0.01 0.1" rpy="0.1 0 0"/><geometry>{cylinder}</geometry>'
+    for link, shape in shapes.items():
+        text = text.replace(f'<link name="{link}">', f'<link name="{link}"><collision>{shape}</collision>', 1)
+    path = tmp_path / "lwr4p.urdf"
+    path.write_text(text)
+    return str(path)
+
+
+def test_a_urdf_s_collision_primitives_are_the_capsules(tmp_path) -> None:
+    """Where the URDF has collision elements (all capsules, cylinders or spheres) they are the capsules: a
+    sphere's distance equals coal's on the URDF's own ``GeometryModel``, a cylinder's capsule is never farther
+    than the cylinder nor nearer by more than its radius; the tick's kernels give the same distances (no
+    Controller here: eight capsules are another record type, a minute of compiling)."""
+    import coal
+
+    path = urdf_with_collisions(tmp_path)
+    robot = qpnso.load_robot(path)
+    caps = link_capsules(robot)
+    assert caps.source == "urdf" and caps.count == 8
+    urdf = pin.buildGeomFromUrdf(robot.model, path, pin.GeometryType.COLLISION)
+    data = pin.GeometryData(urdf)
+    rng = np.random.default_rng(7)
+    obstacle = Sphere((0.3, -0.2, 0.6), 0.1)
+    ball = coal.Sphere(0.1)
+    T_ball = coal.Transform3s(np.eye(3), np.array(obstacle.center))
+    for _ in range(20):
+        q = robot.random_q(rng)
+        pin.updateGeometryPlacements(robot.model, robot.data, urdf, data, q)
+        ours = clearances(robot, q, [obstacle])[:, 0]
+        G = keep_out_record(robot, caps, 8, [obstacle])[0]
+        kernel = [pair_distance(G, caps.points(robot, q), c, 0)[0] for c in range(caps.count)]
+        np.testing.assert_allclose(kernel, ours, atol=1e-8)
+        for k, obj in enumerate(urdf.geometryObjects):
+            M = data.oMg[k]
+            truth = coal.distance(obj.geometry, coal.Transform3s(M.rotation, M.translation), ball, T_ball,
+                                  coal.DistanceRequest(), coal.DistanceResult())  # fmt: skip
+            if truth <= 0:
+                continue
+            if isinstance(obj.geometry, coal.Sphere):
+                assert ours[k] == pytest.approx(truth, abs=1e-8)
+            else:
+                assert truth - obj.geometry.radius - 1e-8 <= ours[k] <= truth + 1e-8

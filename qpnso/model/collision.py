@@ -1,15 +1,18 @@
-"""The arm's collision geometry: a capsule per link, fitted to the joint centres (docs/method.md §10).
+"""The arm's collision geometry: a capsule per link (docs/method.md §10).
 
-The shipped URDFs have no collision elements, and the Panda's are meshes; every arm therefore gets the
-capsules of its kinematic chain: the *chain points* are the base origin, the origin of every joint (on its
-axis) and the tool frame; consecutive points make a segment, rigid in the link between them; segments that
-stay collinear in every configuration (a joint turning about the segment itself: the LWR4+'s upper arm
-holds joints 2–4) are merged and zero-length ones dropped.  Each capsule's radius is the largest of its
-links' radii in ``models/collision.json`` (their source there and in ``models/README.md``).
+From the URDF's collision elements when it has them and every one is a capsule, cylinder (the capsule around
+it) or sphere (a capsule of length 0), each held by its link's joint.  Otherwise — the shipped URDFs have no
+collision elements, the Panda's are meshes — fitted to the joint centres: the *chain points* are the base
+origin, the origin of every joint (on its axis) and the tool frame; consecutive points make a segment, rigid
+in the link between them; segments that stay collinear in every configuration (a joint turning about the
+segment itself: the LWR4+'s upper arm holds joints 2–4) are merged and zero-length ones dropped.  Each fitted
+capsule's radius is the largest of its links' radii in ``models/collision.json`` (their source there and in
+``models/README.md``).
 
 The control tick reads the chain points and their Jacobians from its state (:mod:`qpnso.control.state`)
 and the capsules from its params (:mod:`qpnso.control.params`); :func:`geometry_model` gives the same
-capsules as a Pinocchio ``GeometryModel`` of coal shapes (an independent distance computation, tests).
+capsules as a Pinocchio ``GeometryModel`` of coal shapes, and :func:`clearances` coal's distances through it
+(an independent computation: tests, the simulation's recorded clearance).
 """
 
 from __future__ import annotations
@@ -36,15 +39,17 @@ segments."""
 class LinkCapsules:
     """The capsules of an arm (module docstring).
 
-    ``frames``: the Pinocchio frame of each chain point (its origin is the point; frame 0, the universe, is the
-    base origin); ``a``, ``b``: each capsule's chain points (indices into ``frames``); ``radius`` (m) each;
-    ``names``: the links each covers (``"link_2-link_3"``)."""
+    ``anchors``: each chain point as ``(joint, point in that joint's frame, m)`` (joint 0: the world);
+    ``a``, ``b``: each capsule's chain points (indices into ``anchors``); ``radius`` (m) each; ``names``: the
+    links each covers (``"link_2-link_3"``), or the URDF's collision element; ``source``: ``"fitted"`` (joint
+    centres, ``models/collision.json``) or ``"urdf"`` (the URDF's collision elements)."""
 
-    frames: tuple[int, ...]
+    anchors: tuple[tuple[int, tuple[float, float, float]], ...]
     a: tuple[int, ...]
     b: tuple[int, ...]
     radius: tuple[float, ...]
     names: tuple[str, ...]
+    source: str = "fitted"
 
     @property
     def count(self) -> int:
@@ -52,12 +57,12 @@ class LinkCapsules:
 
     @property
     def points_count(self) -> int:
-        return len(self.frames)
+        return len(self.anchors)
 
     def points(self, robot: Robot, q: np.ndarray) -> np.ndarray:
         """The chain points (k, 3) at ``q`` (rad), m, world (Pinocchio's forward kinematics)."""
-        pin.framesForwardKinematics(robot.model, robot.data, q)
-        return np.array([robot.data.oMf[f].translation for f in self.frames])
+        pin.forwardKinematics(robot.model, robot.data, q)
+        return np.array([robot.data.oMi[j].act(np.array(local)) for j, local in self.anchors])
 
     def segments(self, robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The capsules' axes at ``q``: ends ``(a, b)``, (count, 3) each, m, world."""
@@ -103,8 +108,9 @@ def _cached(robot: Robot) -> LinkCapsules:
 
 
 def has_capsules(robot: Robot) -> bool:
-    """Whether ``models/collision.json`` has link radii for ``robot`` (else :func:`link_capsules` raises)."""
-    return robot.name in load_radii()
+    """Whether ``robot`` has capsules: collision primitives in its URDF or link radii in
+    ``models/collision.json`` (else :func:`link_capsules` raises)."""
+    return robot.name in load_radii() or bool(_urdf_elements(robot))
 
 
 def link_capsules(robot: Robot) -> LinkCapsules:
@@ -114,6 +120,45 @@ def link_capsules(robot: Robot) -> LinkCapsules:
 
 
 def _build(robot: Robot) -> LinkCapsules:
+    elements = _urdf_elements(robot)
+    return _from_urdf(elements) if elements else _fitted(robot)
+
+
+PRIMITIVES = ("Capsule", "Cylinder", "Sphere")
+"""coal shapes of a URDF's collision elements that are capsules (a cylinder: the capsule around it)."""
+
+
+def _urdf_elements(robot: Robot) -> list:
+    """The collision elements of ``robot``'s URDF (Pinocchio's ``GeometryModel``) when every one is a capsule,
+    cylinder or sphere; else (none, a mesh, a box, no URDF file) an empty list: the capsules are fitted."""
+    path = Path(robot.source)
+    if not path.is_file():
+        return []
+    try:
+        geom = pin.buildGeomFromUrdf(robot.model, str(path), pin.GeometryType.COLLISION)
+    except (RuntimeError, ValueError):  # (a mesh Pinocchio cannot find, say)
+        return []
+    objects = list(geom.geometryObjects)
+    return objects if objects and all(type(o.geometry).__name__ in PRIMITIVES for o in objects) else []
+
+
+def _from_urdf(objects: list) -> LinkCapsules:
+    """Capsules of the URDF's collision elements: a capsule or cylinder along its local z axis (its half length
+    each way), a sphere a capsule of length 0, each held by the element's joint."""
+    anchors, a, b, radius, names = [], [], [], [], []
+    for o in objects:
+        g, M = o.geometry, o.placement
+        half = float(getattr(g, "halfLength", 0.0))
+        for end in (-half, half):
+            anchors.append((int(o.parentJoint), tuple(float(x) for x in M.act(np.array([0.0, 0.0, end])))))
+        a.append(len(anchors) - 2)
+        b.append(len(anchors) - 1)
+        radius.append(float(g.radius))
+        names.append(o.name)
+    return LinkCapsules(tuple(anchors), tuple(a), tuple(b), tuple(radius), tuple(names), "urdf")
+
+
+def _fitted(robot: Robot) -> LinkCapsules:
     table = load_radii()
     if robot.name not in table:
         raise ModelError(f"{robot.name}: no link radii in models/collision.json (needed for obstacles)")
@@ -145,7 +190,7 @@ def _build(robot: Robot) -> LinkCapsules:
     used = sorted(set(a) | set(b))
     index = {k: n for n, k in enumerate(used)}
     return LinkCapsules(
-        frames=tuple(chain[k][0] for k in used),
+        anchors=tuple(_anchor(robot, chain[k][0]) for k in used),
         a=tuple(index[k] for k in a),
         b=tuple(index[k] for k in b),
         radius=tuple(radius),
@@ -153,17 +198,17 @@ def _build(robot: Robot) -> LinkCapsules:
     )
 
 
+def _anchor(robot: Robot, frame: int) -> tuple[int, tuple[float, float, float]]:
+    """A frame's origin as ``(joint, point in the joint's frame)``."""
+    f = robot.model.frames[frame]
+    return int(f.parentJoint), tuple(float(x) for x in f.placement.translation)
+
+
 def point_expressions(sym, capsules: LinkCapsules) -> tuple[ca.SX, ca.SX]:
     """The chain points (k·3,) and their Jacobian ∂p/∂q (k·3, n), CasADi over ``sym.q``
     (:class:`qpnso.model.symbolic.SymbolicModel`), points stacked in order, x, y, z each."""
-    points = ca.vertcat(*[sym.frame_placement(f).p if f else ca.SX.zeros(3) for f in capsules.frames])
+    points = ca.vertcat(*[sym.oMi[j].point(np.array(local)) for j, local in capsules.anchors])
     return points, ca.jacobian(points, sym.q)
-
-
-def _holding_joint(robot: Robot, frame: int) -> int:
-    """The joint whose link holds a capsule that starts at chain point ``frame`` (a joint's origin, or the base):
-    that joint (every point of a merged capsule lies on the axes of the joints after it)."""
-    return robot.model.frames[frame].parentJoint
 
 
 def geometry_model(robot: Robot, capsules: LinkCapsules | None = None) -> pin.GeometryModel:
@@ -178,7 +223,7 @@ def geometry_model(robot: Robot, capsules: LinkCapsules | None = None) -> pin.Ge
     geom = pin.GeometryModel()
     for k in range(capsules.count):
         a, b = p[capsules.a[k]], p[capsules.b[k]]
-        joint = _holding_joint(robot, capsules.frames[capsules.a[k]])
+        joint = capsules.anchors[capsules.a[k]][0]  # (every point of a capsule is held by its first end's joint)
         world = pin.SE3(_z_to(b - a), 0.5 * (a + b))
         placement = robot.data.oMi[joint].inverse() * world
         shape = coal.Capsule(capsules.radius[k], float(np.linalg.norm(b - a)))
@@ -187,8 +232,11 @@ def geometry_model(robot: Robot, capsules: LinkCapsules | None = None) -> pin.Ge
 
 
 def _z_to(d: np.ndarray) -> np.ndarray:
-    """A rotation taking the z axis to the direction of ``d``."""
-    z = d / np.linalg.norm(d)
+    """A rotation taking the z axis to the direction of ``d`` (the identity for ``d`` = 0: a sphere)."""
+    length = np.linalg.norm(d)
+    if length < 1e-12:
+        return np.eye(3)
+    z = d / length
     x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
     x /= np.linalg.norm(x)
     return np.column_stack([x, np.cross(z, x), z])

@@ -426,3 +426,43 @@ def test_a_urdf_s_collision_primitives_are_the_capsules(tmp_path) -> None:
                 assert ours[k] == pytest.approx(truth, abs=1e-8)
             else:
                 assert truth - obj.geometry.radius - 1e-8 <= ours[k] <= truth + 1e-8
+
+
+def test_the_torque_wall_s_spring_acts_inside_the_margin(robot, caps) -> None:
+    """A link inside the margin adds ``Nᵀ·Σ K_ob·(d_s − d)₊·∇d`` (∇d from coal's distances) to the torque, at
+    rest; outside the margin nothing."""
+    q = robot.sample_configuration()
+    p = caps.points(robot, ik(robot, robot.tool_pose(q), arm_angle(robot, q) + 0.8, branch(robot, q)))
+    pull = caps.points(robot, q)[2] - p[2]
+    cfg = ControllerConfig()
+    depth = {}  # the sphere moved toward the arm until a link is 1–2 cm inside the margin (the torque unsaturated)
+    for f in np.linspace(0.0, 1.0, 101):
+        d = clearances(robot, q, [Sphere(tuple(p[2] + f * pull), 0.03)]).min()
+        if cfg.obstacle_margin - 0.02 < d < cfg.obstacle_margin - 0.01:
+            depth[True] = f
+            break
+    depth[False] = 0.0
+    for inside in (True, False):
+        sphere = Sphere(tuple(p[2] + depth[inside] * pull), 0.03)
+        d = clearances(robot, q, [sphere])[:, 0]
+        assert (d.min() < cfg.obstacle_margin) == inside
+        near = np.flatnonzero(d < cfg.obstacle_influence)
+        h = 1e-6
+        step = [
+            clearances(robot, q + h * e, [sphere])[near, 0] - clearances(robot, q - h * e, [sphere])[near, 0]
+            for e in np.eye(7)
+        ]
+        grads = np.array(step).T / (2 * h)  # (rows, joints)
+        taus = []
+        for stiffness in (0.0, 1e4):
+            ctrl = Controller(
+                robot, ControllerConfig(strategy="damped", obstacles=[sphere], obstacle_stiffness=stiffness)
+            )
+            ctrl.reset(q)
+            taus.append(ctrl.step(q, dq=np.zeros(7)).tau)
+        wall = sum(1e4 * max(cfg.obstacle_margin - d[c], 0.0) * g for c, g in zip(near, grads))
+        A, J = robot.mass_matrix(q), robot.jacobian(q)
+        Ai = np.linalg.inv(A)
+        expected = (np.eye(7) - J.T @ np.linalg.solve(J @ Ai @ J.T, J @ Ai)) @ wall
+        np.testing.assert_allclose(taus[1] - taus[0], expected, atol=1e-6 * max(np.abs(expected).max(), 1.0))
+        assert (np.abs(expected).max() > 1.0) == inside

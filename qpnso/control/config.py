@@ -125,6 +125,8 @@ class ControllerConfig:
     obstacle_weight_ratio: float = 100.0  # the obstacle rows' slack weight over the elbow rows' (slack_weight)
     obstacle_damping: float = 500.0  # N·s/m: the torque command's wall on a link approaching an obstacle faster
     # than its row allows (every strategy's torque; rows.obstacles.keep_out_torque)
+    obstacle_stiffness: float = 1e4  # N/m: and on a link inside the margin: 300 N (the gradient law's 100 N·m at
+    # 0.33 m) is held 3 cm in, within the margin
 
     def __post_init__(self) -> None:
         """Types first (:func:`qpnso.settings.check`: ``weights``/``qp_settings`` may be dicts),
@@ -169,6 +171,7 @@ class ControllerConfig:
             "safety_margin_deg",
             "q_limit_tolerance_deg",
             "obstacle_damping",
+            "obstacle_stiffness",
         ):
             if getattr(self, name) < 0:
                 raise out_of_range(self, name, "must be >= 0")

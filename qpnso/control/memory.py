@@ -20,6 +20,9 @@ from qpnso.records import new_record
 
 TWO_PI = 2.0 * math.pi
 
+KEEP_OUT_ROWS = 16
+"""Keep-out rows a tick holds at most (:data:`qpnso.control.rows.obstacles.OBSTACLE_ROW_ROOM` is this)."""
+
 KNOWN_NONE, KNOWN, KNOWN_STALE = 0.0, 1.0, 2.0
 """``iv_known``: no continuity interval yet; one computed; one whose renewal failed (stale)."""
 
@@ -42,6 +45,7 @@ def memory_dtype(n: int) -> np.dtype:
             ("ref_R", f8, (3, 3)),  # the tool's reference rotation (world ← tool)
             ("ref_p", f8, 3),  # and position (m, world)
             ("cost_step", f8, n),  # rad/s: the qp strategy's low-passed cost step
+            ("keep_out_d", f8, KEEP_OUT_ROWS),  # m: this tick's keep-out rows' distances (rows.obstacles)
         ]
     )
 

@@ -351,7 +351,7 @@ def begin_tick(q, twist, tick, follow):
     pb.lb[:], pb.ub[:] = velocity_bounds(q, P)
     pb.has_level2, pb.n_hard, pb.n_soft = 0, 0, 0
     add_rows(pb, s, P)  # the row kinds' rows (qpnso.control.rows)
-    obstacle_rows(pb, s, P, r)  # the keep-out rows (qpnso.control.rows.obstacles)
+    obstacle_rows(pb, s, P, r, m)  # the keep-out rows (qpnso.control.rows.obstacles)
     if follow:
         advance_reference(m, twist, P.dt)  # (after level 1 read it: the next tick's reference)
     return TICK_READY
@@ -420,7 +420,7 @@ def finish_tick(q, dq_meas, tick):
     dq[:] = S.x
     c.q_des[:] = q + P.dt * dq
     tau_null = c.spring + c.stiffness_dt * dq + c.damping * (c.damp_cmd * dq - dq_meas)
-    keep_out_torque(t.problem, r, P, dq_meas, tau_null)  # (the keep-out rows' wall: every strategy)
+    keep_out_torque(t.problem, r, P, t.memory, dq_meas, tau_null)  # (the keep-out rows' wall: every strategy)
     c.tau[:] = s.g + dynamically_consistent_projection(s.A, s.J, tau_null)[0]
     bits = r.bits
     if S.outcome == SOLVED:

@@ -52,8 +52,9 @@ OBSTACLE_END = -1000
 class KeepOut:
     """The settings of the keep-out rows (from :class:`~qpnso.control.config.ControllerConfig`): ``margin`` d_s
     (m), ``influence`` d_i (m), ``speed`` ξ (m/s: the approach speed the damper allows at d_i), the largest
-    ``recovery_speed`` (m/s) back out of the margin, the rows' slack weight relative to the elbow rows', and the
-    ``damping`` (N·s/m) of the torque wall (:func:`qpnso.control.rows.obstacles.keep_out_torque`)."""
+    ``recovery_speed`` (m/s) back out of the margin, the rows' slack weight relative to the elbow rows', and
+    the ``damping`` (N·s/m) and ``stiffness`` (N/m) of the torque wall
+    (:func:`qpnso.control.rows.obstacles.keep_out_torque`)."""
 
     margin: float = 0.03
     influence: float = 0.15
@@ -61,6 +62,7 @@ class KeepOut:
     recovery_speed: float = 0.05
     weight_ratio: float = 100.0
     damping: float = 500.0
+    stiffness: float = 1e4
 
     @classmethod
     def of(cls, config) -> "KeepOut":
@@ -71,6 +73,7 @@ class KeepOut:
             config.obstacle_recovery_speed,
             config.obstacle_weight_ratio,
             config.obstacle_damping,
+            config.obstacle_stiffness,
         )
 
 
@@ -87,6 +90,7 @@ def keep_out_dtype(points: int, capsules: int, room: int) -> np.dtype:
             ("recovery_speed", f8),  # m/s
             ("row_scale", f8),  # √(weight ratio): the rows' scale in level 2 (slack weight × ratio)
             ("damping", f8),  # D_ob (N·s/m): the torque wall on a row the measured motion breaks
+            ("stiffness", f8),  # K_ob (N/m): the torque wall on a link inside the margin
             ("n_capsules", i8),
             ("n_obstacles", i8),
             ("cap_a", i8, c),  # chain points of each capsule's ends
@@ -123,7 +127,7 @@ def keep_out_record(
     g["margin"], g["influence"], g["recovery_speed"] = s.margin, s.influence, s.recovery_speed
     g["gain"] = s.speed / (s.influence - s.margin)
     g["row_scale"] = math.sqrt(s.weight_ratio)
-    g["damping"] = s.damping
+    g["damping"], g["stiffness"] = s.damping, s.stiffness
     g["n_capsules"] = capsules.count
     g["cap_a"][: capsules.count], g["cap_b"][: capsules.count] = capsules.a, capsules.b
     g["cap_radius"][: capsules.count] = capsules.radius

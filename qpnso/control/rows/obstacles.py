@@ -19,10 +19,11 @@ import math
 from numba import njit
 
 from qpnso.control.flags import FLAG_OBSTACLE
+from qpnso.control.memory import KEEP_OUT_ROWS
 from qpnso.control.rows.damper import damper
 from qpnso.elbow.clearance import pair_distance
 
-OBSTACLE_ROW_ROOM = 16
+OBSTACLE_ROW_ROOM = KEEP_OUT_ROWS
 """Keep-out rows a tick holds at most (the nearest pairs within the influence distance)."""
 
 OBSTACLE_SLACK_REPORTED = 1e-4
@@ -30,15 +31,16 @@ OBSTACLE_SLACK_REPORTED = 1e-4
 
 
 @njit(cache=True)
-def obstacle_rows(pb, s, P, r):
+def obstacle_rows(pb, s, P, r, m):
     """Append the keep-out rows (module docstring) to the problem ``pb``'s soft rows, from the state ``s``
     (chain points and their Jacobians), the params ``P`` (``P.geo``, the keep-out record) and write the least
-    clearance (m) and its pair, and where the rows are, into the report ``r``.  With no room left, a nearer
-    pair takes the row of the farthest (the row with the least lower bound)."""
+    clearance (m) and its pair, and where the rows are, into the report ``r``, each row's distance (m) into
+    the memory ``m`` (``keep_out_d``, for :func:`keep_out_torque`).  With no room left, a nearer pair takes the
+    row of the farthest (the row with the least lower bound)."""
     G = P.geo
     r.clearance, r.clear_capsule, r.clear_obstacle = math.inf, -1, -1
     r.obstacle_first, r.obstacle_rows = pb.n_soft, 0
-    room = pb.soft_C.shape[0] - 1  # (one row kept for the elbow, after these)
+    room = min(pb.soft_C.shape[0] - 1, pb.n_soft + KEEP_OUT_ROWS)  # (one row kept for the elbow, after these)
     scale = G.row_scale
     for o in range(G.n_obstacles):
         for c in range(G.n_capsules):
@@ -63,27 +65,30 @@ def obstacle_rows(pb, s, P, r):
                     + n2 * ((1 - t) * Ja[2, j] + t * Jb[2, j])
                 )
             pb.soft_l[k], pb.soft_u[k] = lo, math.inf
+            m.keep_out_d[k - r.obstacle_first] = d
             pb.slack_weight = P.slack_weight
 
 
 @njit(cache=True)
-def keep_out_torque(pb, r, P, dq_meas, tau_null):
-    """Add to the null-space torque ``tau_null`` (N·m, in place) the keep-out rows' wall: for each row the
-    measured ``dq_meas`` (rad/s) breaks (``∇dᵀq̇ < l``, the link approaching faster than its damper allows),
-    ``D_ob·(l − ∇dᵀq̇)·∇d`` (D_ob = ``P.geo.damping``, N·s/m; ∇d in m/rad).  A strategy whose torque law
-    follows its QP command (``qp``) meets the rows already (the term is about 0); the baselines' laws (the
-    papers') do not see the rows, and without it their arms went into a known obstacle in the hands-on
-    simulation.  The tick's ``Nᵀ`` keeps it off the tool."""
+def keep_out_torque(pb, r, P, m, dq_meas, tau_null):
+    """Add to the null-space torque ``tau_null`` (N·m, in place) the keep-out rows' wall, ``f·∇d`` per row with
+    ``f = D_ob·(l − ∇dᵀq̇)₊ + K_ob·(d_s − d)₊`` (N): a damper on a measured ``dq_meas`` (rad/s) that breaks the
+    row (the link approaching faster than its damper allows) and a spring on a distance ``d`` (``m.keep_out_d``)
+    inside the margin (D_ob = ``P.geo.damping``, N·s/m; K_ob = ``P.geo.stiffness``, N/m; ∇d in m/rad).  A
+    strategy whose torque law follows its QP command (``qp``) meets the rows already (the term is about 0);
+    the baselines' laws (the papers') do not see the rows, and without it their arms went into a known obstacle
+    in the hands-on simulation.  The tick's ``Nᵀ`` keeps it off the tool."""
     G = P.geo
     scale = G.row_scale
     for k in range(r.obstacle_first, r.obstacle_first + r.obstacle_rows):
         v = 0.0
         for j in range(dq_meas.shape[0]):
             v += pb.soft_C[k, j] * dq_meas[j]
-        deficit = (pb.soft_l[k] - v) / scale
-        if deficit > 0.0:
+        force = G.damping * max((pb.soft_l[k] - v) / scale, 0.0)
+        force += G.stiffness * max(G.margin - m.keep_out_d[k - r.obstacle_first], 0.0)
+        if force > 0.0:
             for j in range(dq_meas.shape[0]):
-                tau_null[j] += G.damping * deficit * pb.soft_C[k, j] / scale
+                tau_null[j] += force * pb.soft_C[k, j] / scale
 
 
 @njit(cache=True)

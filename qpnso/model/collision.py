@@ -150,7 +150,7 @@ def _from_urdf(objects: list) -> LinkCapsules:
         g, M = o.geometry, o.placement
         half = float(getattr(g, "halfLength", 0.0))
         for end in (-half, half):
-            anchors.append((int(o.parentJoint), tuple(float(x) for x in M.act(np.array([0.0, 0.0, end])))))
+            anchors.append((int(o.parentJoint), _vec3(M.act(np.array([0.0, 0.0, end])))))
         a.append(len(anchors) - 2)
         b.append(len(anchors) - 1)
         radius.append(float(g.radius))
@@ -201,7 +201,12 @@ def _fitted(robot: Robot) -> LinkCapsules:
 def _anchor(robot: Robot, frame: int) -> tuple[int, tuple[float, float, float]]:
     """A frame's origin as ``(joint, point in the joint's frame)``."""
     f = robot.model.frames[frame]
-    return int(f.parentJoint), tuple(float(x) for x in f.placement.translation)
+    return int(f.parentJoint), _vec3(f.placement.translation)
+
+
+def _vec3(v: np.ndarray) -> tuple[float, float, float]:
+    """A 3-vector as three floats."""
+    return float(v[0]), float(v[1]), float(v[2])
 
 
 def point_expressions(sym, capsules: LinkCapsules) -> tuple[ca.SX, ca.SX]:

@@ -32,13 +32,19 @@ import math
 import types
 import typing
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, TypeGuard
 
 import numpy as np
 
 from qpnso.errors import ConfigError
 
-__all__ = ["SettingError", "check", "check_table", "from_dict", "out_of_range", "show"]
+__all__ = ["SettingError", "check", "check_table", "from_dict", "out_of_range", "read_toml", "show"]
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
 
 
 class SettingError(ConfigError):
@@ -262,3 +268,15 @@ def _describe(hint: Any) -> str:
 def _plural(hint: Any) -> str:
     """``_describe`` of a list's items, plural (``finite numbers``)."""
     return {float: "finite numbers", int: "integers", bool: "booleans", str: "strings"}.get(hint, _describe(hint))
+
+
+def read_toml(path: str | Path, what: str = "file") -> dict:
+    """The tables of the TOML file ``path``; a :class:`qpnso.errors.ConfigError` says that the ``what``
+    (e.g. ``"config file"``) is not found, or names the file and TOML's own complaint."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{what} not found: {p}")
+    try:
+        return tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None

@@ -14,6 +14,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from conftest import HAS_PANDA
+from test_intervals import _inside, _regular_qs
 
 from qpnso import Controller, ControllerConfig
 from qpnso.cli import main
@@ -64,18 +65,6 @@ class CoalClearance:
             )  # fmt: skip
             for obj, M in placed
         )
-
-
-def _regular_qs(robot: Robot, rng: np.random.Generator, n: int, margin: float = 0.0) -> list[np.ndarray]:
-    qs = (robot.random_q(rng, margin) for _ in range(2 * n))
-    return [q for q in qs if E.arm_angle_status(robot, q).ok][:n]
-
-
-def _inside(arcs: list[tuple[float, float]], x: np.ndarray) -> np.ndarray:
-    out = np.zeros(x.shape, bool)
-    for lo, hi in arcs:
-        out |= (x - lo) % TWO_PI <= hi - lo
-    return out
 
 
 def _turns(a: float, b: float) -> float:

@@ -24,11 +24,6 @@ from qpnso.cli.common import (
     write_json,
 )
 
-try:  # Python 3.11+
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
-
 if TYPE_CHECKING:
     from qpnso.model.obstacles import Obstacle
 
@@ -107,25 +102,17 @@ def cmd_intervals(args: argparse.Namespace) -> int:
 def read_obstacles(path: str) -> tuple[Obstacle, ...]:
     """The ``[[obstacles]]`` tables of a TOML file (``type = "sphere" | "capsule" | "box"`` and the fields of
     :mod:`qpnso.model.obstacles`, m, world frame) as obstacles; a ConfigError names the file and the entry."""
-    from pathlib import Path
-
     from qpnso.errors import ConfigError
     from qpnso.model.obstacles import as_obstacles
-    from qpnso.settings import SettingError
+    from qpnso.settings import SettingError, read_toml
 
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"obstacle file not found: {p}")
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    data = read_toml(path, "obstacle file")
     if "obstacles" not in data:
-        raise ConfigError(f"{p}: no [[obstacles]] tables")
+        raise ConfigError(f"{path}: no [[obstacles]] tables")
     try:
         return as_obstacles(data["obstacles"])
     except SettingError as exc:
-        raise exc.within("", str(p)) from None
+        raise exc.within("", str(path)) from None
 
 
 # ---------------------------------------------------------------- trajectory

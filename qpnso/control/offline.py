@@ -20,14 +20,8 @@ from scipy.spatial.transform import Rotation
 from qpnso.control.config import ControllerConfig, Status
 from qpnso.control.controller import Controller
 from qpnso.control.trajectory import Trajectory
-from qpnso.errors import ConfigError, InputError, QpnsoError, UnreachableError
+from qpnso.errors import InputError, QpnsoError, UnreachableError
 from qpnso.model.robot import Robot
-
-try:  # Python 3.11+
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
-
 
 RESULT_KEYS = (
     "t",
@@ -187,17 +181,12 @@ def config_values(path: str | Path | None, overrides: dict | None = None) -> dic
     and under ``[controller]``, is an error rather than silently dropped.
     """
     from qpnso.lab.scenarios import SCENARIO_TABLES
-    from qpnso.settings import SettingError, check_table, show
+    from qpnso.settings import SettingError, check_table, read_toml, show
 
     values: dict = {}
     if path is not None:
         p = Path(path)
-        if not p.is_file():
-            raise ConfigError(f"config file not found: {p}")
-        try:
-            data = tomllib.loads(p.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+        data = read_toml(p, "config file")
         values = data
         if "controller" in data:
             values = data["controller"]

@@ -28,15 +28,10 @@ from qpnso.control.trajectory import Trajectory, guidance_path
 from qpnso.errors import ConfigError
 from qpnso.model.obstacles import Obstacle
 from qpnso.model.robot import Robot, load_robot
-from qpnso.settings import SettingError, check, from_dict, out_of_range
+from qpnso.settings import SettingError, check, from_dict, out_of_range, read_toml
 
 if TYPE_CHECKING:
     from qpnso.control.offline import RunResult
-
-try:  # Python 3.11+
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
 
 SCENARIO_DIR = Path(__file__).resolve().parents[2] / "examples" / "scenarios"
 """Where the shipped scenario files are."""
@@ -155,10 +150,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     from qpnso.control.config import ControllerConfig
 
     p = scenario_path(name_or_path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    data = read_toml(p, "scenario file")
     f = from_dict(ScenarioFile, data, str(p))
     if "obstacles" in f.controller:
         raise SettingError(str(p), "controller.obstacles", "a scenario's obstacles go at the top level: [[obstacles]]")

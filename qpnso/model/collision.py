@@ -247,6 +247,12 @@ def _z_to(d: np.ndarray) -> np.ndarray:
     return np.column_stack([x, np.cross(z, x), z])
 
 
+@functools.lru_cache(maxsize=16)
+def _shared_geometry(robot: Robot) -> pin.GeometryModel:
+    """:func:`geometry_model` of ``robot``, built once (:func:`clearances` only reads it)."""
+    return geometry_model(robot)
+
+
 def coal_shape(obstacle) -> tuple[object, pin.SE3]:
     """A :mod:`qpnso.model.obstacles` obstacle as a coal shape and its world placement."""
     import coal
@@ -266,7 +272,7 @@ def clearances(robot: Robot, q: np.ndarray, obstacles, geom: pin.GeometryModel |
     An independent check of the control tick's own distances (:mod:`qpnso.model.distance`)."""
     import coal
 
-    geom = geom or geometry_model(robot)
+    geom = geom or _shared_geometry(robot)
     gdata = pin.GeometryData(geom)
     pin.updateGeometryPlacements(robot.model, robot.data, geom, gdata, np.asarray(q, dtype=float))
     shapes = [coal_shape(ob) for ob in obstacles]

@@ -463,3 +463,25 @@ def test_the_torque_wall_s_spring_acts_inside_the_margin(robot, caps) -> None:
         expected = (np.eye(7) - J.T @ np.linalg.solve(J @ Ai @ J.T, J @ Ai)) @ wall
         np.testing.assert_allclose(taus[1] - taus[0], expected, atol=1e-6 * max(np.abs(expected).max(), 1.0))
         assert (np.abs(expected).max() > 1.0) == inside
+
+
+def test_links_that_do_not_turn_rigidly_take_the_numerical_walk(robot, caps) -> None:
+    """An arm whose capsules do not turn rigidly with the arm angle (``geo.arcs`` 0: capsules off the joint
+    axes) has no closed-form cut: with obstacles its controller walks the interval numerically, obstacles and
+    all, and finds the closed form's interval (the LWR4+ here, its record told otherwise); without them the
+    tick renews it again."""
+    q = robot.sample_configuration()
+    p = caps.points(robot, ik(robot, robot.tool_pose(q), arm_angle(robot, q) + 0.8, branch(robot, q)))
+    sphere = Sphere(tuple(p[2]), 0.03)
+    ctrl = Controller(robot, ControllerConfig())
+    params = ctrl.records.params
+    params[0]["geo"]["arcs"] = 0.0
+    ctrl.set_obstacles([sphere])
+    assert params[0]["closed_form_interval"] == 0.0
+    ctrl.reset(q)
+    walked = ctrl.step(q).interval
+    closed = qpnso.continuity_interval(robot, q, obstacles=[sphere])
+    assert walked == pytest.approx((closed.lo, closed.hi), abs=1e-6)
+    assert closed.hi_cause.kind == "obstacle" or closed.lo_cause.kind == "obstacle"
+    ctrl.set_obstacles([])
+    assert params[0]["closed_form_interval"] == 1.0

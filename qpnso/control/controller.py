@@ -43,7 +43,7 @@ from qpnso.control.flags import (
     PREDICTION_MISSED,
 )
 from qpnso.control.memory import interval_failed, new_memory, store_interval
-from qpnso.control.params import tick_params
+from qpnso.control.params import interval_in_tick, tick_params
 from qpnso.control.rows import RowKind
 from qpnso.control.rows.kind import row_counts
 from qpnso.control.rows.obstacles import OBSTACLE_ROW_ROOM
@@ -235,8 +235,12 @@ class Controller:
         if self.capsules is None:
             raise ConfigError(f"{self.robot.name}: no link capsules (models/collision.json): obstacles not supported")
         checked = as_obstacles(obstacles)
-        set_obstacles(self.records.params["geo"], checked)
+        params = self.records.params
+        set_obstacles(params["geo"], checked)
+        params[0]["closed_form_interval"] = interval_in_tick(self.robot, params)  # (links that do not turn
+        # rigidly with the arm angle: the numerical walk, with the obstacles)
         self.obstacles = checked
+        self._walk = None  # (a walk under way knew the old obstacles)
         self.records.memory[0]["iv_age"] = math.inf  # (renewed at the next tick, against these)
         self.records.memory[0]["iv_p"][:] = math.inf  # (a held tool renews it too: its pose "moved")
 

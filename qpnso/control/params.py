@@ -124,7 +124,6 @@ def tick_params(
         wrist_sin_min=float(np.sin(np.radians(WRIST_CONE_DEG))),
         elbow_offset_min=ELBOW_OFFSET_MIN_M,
         interval_period=cfg.interval_period,
-        closed_form_interval=float(closed_form),
         tool_moved_tol=TOOL_MOVED_TOL,
         q_check_lo=robot.q_min - Q_CHECK_WIDENING,
         q_check_hi=robot.q_max + Q_CHECK_WIDENING,
@@ -157,4 +156,15 @@ def tick_params(
         params["srs"] = srs_geometry(robot).record  # the arm's geometry for the tick's interval kernel
     if capsules is not None:
         params["geo"] = keep_out_record(robot, capsules, obstacle_room, cfg.obstacles, KeepOut.of(cfg))
+    params["closed_form_interval"] = interval_in_tick(robot, params)
     return params
+
+
+def interval_in_tick(robot: Robot, params: np.ndarray) -> float:
+    """1.0 when the tick renews the continuity interval itself: the arm has the closed form
+    (:func:`~qpnso.elbow.intervals.closed_form_applies`) and, with obstacles in its keep-out record, its links
+    turn rigidly with the arm angle (``geo.arcs``: the closed-form cut); else 0.0 (the controller walks it
+    numerically, obstacles and all).  Set again when the obstacles change."""
+    g = params["geo"][0]
+    rigid = g["arcs"] != 0.0 or g["n_obstacles"] == 0
+    return float(closed_form_applies(robot) and rigid)

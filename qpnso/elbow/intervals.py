@@ -66,6 +66,7 @@ from qpnso.elbow.clearance import (
     least_clearance,
     next_crossing,
     pair_distance,
+    record_clearance,
     set_obstacles,
 )
 from qpnso.elbow.closed_form import (
@@ -513,13 +514,13 @@ class _Clearance:
     def __init__(self, robot: Robot, obstacles: Sequence[Obstacle], margin: float) -> None:
         self.robot = robot
         rec, self.capsules = _keep_out(robot, obstacles, margin)
-        self.G = rec[0]
+        self.rec, self.G = rec, rec[0]
 
     def gap(self, q: np.ndarray) -> tuple[float, int]:
         """``(d − d_s, code)`` at ``q`` (rad): the least distance (m) of a link capsule to an obstacle minus the
         margin (:func:`qpnso.elbow.clearance.least_clearance`, every capsule) and the pair's end code
         (:func:`end_cause`)."""
-        d, c, o = least_clearance(self.G, self.capsules.points(self.robot, q), False)
+        d, c, o = record_clearance(self.rec, self.capsules.points(self.robot, q), False)
         return d - self.G["margin"], OBSTACLE_END - (100 * c + o)
 
     def raise_if_within_margin(self, q: np.ndarray) -> None:

@@ -215,6 +215,12 @@ def _box_margin(al, d, half, t):
 
 
 @njit(cache=True)
+def _in_box(R, i, p, center):
+    """Coordinate ``i`` of the point ``p`` in the box frame: ``(Rᵀ(p − center))_i`` (m)."""
+    return R[0, i] * (p[0] - center[0]) + R[1, i] * (p[1] - center[1]) + R[2, i] * (p[2] - center[2])
+
+
+@njit(cache=True)
 def segment_box(a, b, center, R, half):
     """Signed distance from the segment ``a``–``b`` to the oriented box (``center``, ``R`` world ← box,
     half extents ``half``; m): ``(dist, t, n0, n1, n2)``.  Negative means the segment's axis is inside the box.
@@ -232,12 +238,9 @@ def segment_box(a, b, center, R, half):
     are equal: all those candidates are evaluated exactly.  ``t`` is the best candidate and ``n`` the outward
     normal (world) of the face with the least margin there (``∂dist/∂x = n`` again); of faces tied there, the
     one the segment runs most parallel to.  A segment touching the box gets ``dist = 0``."""
-    al = np.empty(3)
-    d = np.empty(3)
-    for i in range(3):
-        al[i] = R[0, i] * (a[0] - center[0]) + R[1, i] * (a[1] - center[1]) + R[2, i] * (a[2] - center[2])
-        bl = R[0, i] * (b[0] - center[0]) + R[1, i] * (b[1] - center[1]) + R[2, i] * (b[2] - center[2])
-        d[i] = bl - al[i]
+    al = (_in_box(R, 0, a, center), _in_box(R, 1, a, center), _in_box(R, 2, a, center))  # (tuples: no
+    # allocation in the control tick, which calls this for every capsule–box pair)
+    d = (_in_box(R, 0, b, center) - al[0], _in_box(R, 1, b, center) - al[1], _in_box(R, 2, b, center) - al[2])
 
     # Outside: minimise f over each piece [tl, tr] between consecutive breakpoints.
     t_best = 0.0

@@ -485,3 +485,43 @@ def test_links_that_do_not_turn_rigidly_take_the_numerical_walk(robot, caps) -> 
     assert closed.hi_cause.kind == "obstacle" or closed.lo_cause.kind == "obstacle"
     ctrl.set_obstacles([])
     assert params[0]["closed_form_interval"] == 1.0
+
+
+def test_reset_forgets_the_clearance(robot, caps) -> None:
+    """A stop tick reports the clearance its run last found; after ``reset`` none (inf)."""
+    q = robot.sample_configuration()
+    p = caps.points(robot, ik(robot, robot.tool_pose(q), arm_angle(robot, q) + 0.8, branch(robot, q)))
+    ctrl = Controller(robot, ControllerConfig(obstacles=[Sphere(tuple(p[2]), 0.03)]))
+    ctrl.reset(q)
+    assert ctrl.step(q).clearance < 0.2
+    ctrl.reset(q)
+    report = ctrl.records.report[0]
+    assert report["clearance"] == math.inf and report["clear_capsule"] == -1 and report["obstacle_rows"] == 0
+
+
+def test_with_more_pairs_than_room_the_nearest_keep_their_rows(robot, caps) -> None:
+    """Eight spheres (the controller's room: no other record type) on circles across the arm's plane — six
+    16 cm round the elbow, two 15 cm round a point of the forearm near the wrist — put 17 link–obstacle pairs
+    within the influence distance, more than a tick has keep-out rows (16): the 16 nearest keep theirs (coal's
+    distances)."""
+    q = robot.sample_configuration()
+    S, E, W = caps.points(robot, q)[1:4]
+    n = np.cross(S - E, W - E)
+    n /= np.linalg.norm(n)
+
+    def circle(centre, count, first, last, radius):
+        m = centre - 0.5 * (S + W)
+        m -= (m @ n) * n
+        m /= np.linalg.norm(m)
+        angles = np.radians(np.linspace(first, last, count))
+        return [Sphere(tuple(centre + radius * (np.cos(a) * n + np.sin(a) * m)), 0.02) for a in angles]
+
+    spheres = circle(E, 6, -180.0, 160.0, 0.16) + circle(0.2 * E + 0.8 * W, 2, -90.0, 90.0, 0.15)
+    d = clearances(robot, q, spheres).ravel()
+    near = np.sort(d[d < ControllerConfig().obstacle_influence])
+    assert len(near) > 16
+    ctrl = Controller(robot, ControllerConfig(obstacles=spheres))
+    ctrl.reset(q)
+    ctrl.step(q)
+    kept = ctrl.records.memory[0]["keep_out_d"][: int(ctrl.records.report[0]["obstacle_rows"])]
+    np.testing.assert_allclose(np.sort(kept), near[:16], atol=1e-9)

@@ -345,7 +345,7 @@ def test_joint_limit_cutting_the_line_takes_the_general_cascade(robot, monkeypat
 def test_a_hard_row_folds_into_the_segment(robot) -> None:
     """A hard row on the line narrows its segment exactly (the line fast path keeps it), and the answer
     equals the general cascade's on the same problem."""
-    from qpnso.control.rows.obstacles import OBSTACLE_ROW_ROOM
+    from qpnso.control.memory import KEEP_OUT_ROWS
     from qpnso.qp.problem import new_problem, new_solution, problem_levels
 
     ctrl = Controller(robot, ControllerConfig(strategy="qp"))
@@ -364,7 +364,7 @@ def test_a_hard_row_folds_into_the_segment(robot) -> None:
     assert d @ x <= p["hard_u"][0] + 1e-9 and d @ x == pytest.approx(p["hard_u"][0], abs=1e-7)
     reference = ctrl.qp.solve(problem_levels(problem), p["lb"], p["ub"])
     np.testing.assert_allclose(x, reference.x, rtol=0, atol=1e-7)
-    room = 3 + OBSTACLE_ROW_ROOM  # the controller's room: 2 hard rows; the elbow's, 2 soft and the keep-out rows
+    room = 3 + KEEP_OUT_ROWS  # the controller's room: 2 hard rows; the elbow's, 2 soft and the keep-out rows
     assert new_problem(7, 2, room).dtype == problem.dtype
 
 

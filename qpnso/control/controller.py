@@ -42,11 +42,10 @@ from qpnso.control.flags import (
     FLAG_QP_FAILED,
     PREDICTION_MISSED,
 )
-from qpnso.control.memory import interval_failed, new_memory, store_interval
+from qpnso.control.memory import KEEP_OUT_ROWS, interval_failed, new_memory, store_interval
 from qpnso.control.params import interval_in_tick, tick_params
 from qpnso.control.rows import RowKind
 from qpnso.control.rows.kind import row_counts
-from qpnso.control.rows.obstacles import OBSTACLE_ROW_ROOM
 from qpnso.control.state import StateEvaluator, sanitize_state
 from qpnso.control.tick import (
     TICK_NEED_INTERVAL,
@@ -153,7 +152,7 @@ class Controller:
         caps = self.capsules
         points, count = (caps.points_count, caps.count) if caps else (0, 0)
         self._obstacle_room = max(OBSTACLE_ROOM, len(cfg.obstacles)) if caps else 0
-        problem_soft = soft_room + (OBSTACLE_ROW_ROOM if caps else 0)  # (the keep-out rows are soft rows too)
+        problem_soft = soft_room + (KEEP_OUT_ROWS if caps else 0)  # (the keep-out rows are soft rows too)
         self.tick = tick = new_record(tick_dtype(n, room, hard_room, problem_soft, points, count, self._obstacle_room))
         tick["params"] = tick_params(robot, cfg, self.rows, room, caps, self._obstacle_room)
         tick["problem"] = new_problem(n, hard_room, 1 + problem_soft)
@@ -215,6 +214,13 @@ class Controller:
         centre = float(state.arm_angle if ns0 is None else ns0)
         self.records.memory[:] = new_memory(
             self.robot.nq, state.arm_angle, centre, state.tool_rotation, state.tool_position
+        )
+        report = self.records.report[0]  # (a stop tick reports the clearance begin_tick last found: none yet)
+        report["clearance"], report["clear_capsule"], report["clear_obstacle"], report["obstacle_rows"] = (
+            math.inf,
+            -1,
+            -1,
+            0,
         )
         self._dq_prev = np.zeros(self.robot.nq)
         self._twist_prev = np.zeros(6)  # m/s, rad/s: the previous tick's tool twist (its change is predicted)

@@ -21,7 +21,8 @@ from qpnso.records import new_record
 TWO_PI = 2.0 * math.pi
 
 KEEP_OUT_ROWS = 16
-"""Keep-out rows a tick holds at most (:data:`qpnso.control.rows.obstacles.OBSTACLE_ROW_ROOM` is this)."""
+"""Keep-out rows a tick holds at most (the nearest pairs within the influence distance;
+:mod:`qpnso.control.rows.obstacles`): their distances are in the memory, and the problem has room for them."""
 
 KNOWN_NONE, KNOWN, KNOWN_STALE = 0.0, 1.0, 2.0
 """``iv_known``: no continuity interval yet; one computed; one whose renewal failed (stale)."""

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+import pinocchio as pin
 from numba import njit
 
 from qpnso.model.collision import LinkCapsules
@@ -41,8 +42,9 @@ MIN_STEP_RAD = 1e-3
 """rad: the smallest step of :func:`next_crossing`."""
 END_TOL_RAD = 1e-7
 """rad: an obstacle end of an arm-angle interval is bisected to this."""
-MOTION_TOL = 1e-9
-"""m: a chain point is fixed (rotating) when it is within this of its predicted place at another arm angle."""
+MOTION_TOL = 1e-6
+"""m: a chain point is fixed (rotating) when it is within this of its predicted place at another arm angle
+(the closed-form IK's round-off is far below)."""
 
 OBSTACLE_END = -1000
 """End code of an interval ended by an obstacle: ``OBSTACLE_END − (100·capsule + obstacle)``."""
@@ -187,7 +189,7 @@ def point_motion(robot: Robot, capsules: LinkCapsules) -> tuple[np.ndarray | Non
 
 
 def _near(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(a - b, axis=1) < MOTION_TOL * 1e3  # (IK round-off: 1e-6 m)
+    return np.linalg.norm(a - b, axis=1) < MOTION_TOL
 
 
 def _index_of(points: np.ndarray, p: np.ndarray) -> int:
@@ -196,11 +198,10 @@ def _index_of(points: np.ndarray, p: np.ndarray) -> int:
 
 
 def rotated(points: np.ndarray, s: np.ndarray, w: np.ndarray, angle: float) -> np.ndarray:
-    """``points`` (k, 3) turned by ``angle`` (rad) about the axis from ``s`` to ``w`` (Rodrigues), NumPy."""
+    """``points`` (k, 3) turned by ``angle`` (rad) about the axis from ``s`` to ``w`` (``pinocchio.exp3``): the
+    independent check of :func:`turn_points`' Rodrigues formula when an arm's record is built."""
     u = (w - s) / np.linalg.norm(w - s)
-    v = points - s
-    c, si = math.cos(angle), math.sin(angle)
-    return s + v * c + np.cross(u, v) * si + np.outer(v @ u, u) * (1 - c)
+    return s + (points - s) @ pin.exp3(angle * u).T
 
 
 @njit(cache=True)

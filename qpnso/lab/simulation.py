@@ -18,10 +18,7 @@ each of them is measured independently of the controller, with coal
 (:func:`qpnso.model.collision.clearances`), at the configuration the tick starts
 from: the controller's own distances (:mod:`qpnso.model.distance`) are what is
 being checked, and the room may hold obstacles the controller was not given.
-Measured cost (LWR4+, 4 capsules, the microscope box, strategy ``qp``, 3.6 s of
-scenario B's path, CPU time per simulated tick, median of 5 interleaved runs on a
-shared 2-core VM): 426 µs without the measurement, 554 µs with it (+30 %; the
-coal call alone 81 µs) — a simulation 1.3× as long, so every tick is measured.
+Every tick is measured (its cost: docs/benchmarks.md, "Keep-out volumes").
 """
 
 from __future__ import annotations

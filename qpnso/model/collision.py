@@ -128,21 +128,23 @@ PRIMITIVES = ("Capsule", "Cylinder", "Sphere")
 """coal shapes of a URDF's collision elements that are capsules (a cylinder: the capsule around it)."""
 
 
-def _urdf_elements(robot: Robot) -> list:
+@functools.lru_cache(maxsize=16)
+def _urdf_elements(robot: Robot) -> tuple:
     """The collision elements of ``robot``'s URDF (Pinocchio's ``GeometryModel``) when every one is a capsule,
-    cylinder or sphere; else (none, a mesh, a box, no URDF file) an empty list: the capsules are fitted."""
+    cylinder or sphere; else (none, a mesh, a box, no URDF file) none: the capsules are fitted.  Read once per
+    robot (:func:`has_capsules` and :func:`link_capsules` both ask)."""
     path = Path(robot.source)
     if not path.is_file():
-        return []
+        return ()
     try:
         geom = pin.buildGeomFromUrdf(robot.model, str(path), pin.GeometryType.COLLISION)
     except (RuntimeError, ValueError):  # (a mesh Pinocchio cannot find, say)
-        return []
-    objects = list(geom.geometryObjects)
-    return objects if objects and all(type(o.geometry).__name__ in PRIMITIVES for o in objects) else []
+        return ()
+    objects = tuple(geom.geometryObjects)
+    return objects if objects and all(type(o.geometry).__name__ in PRIMITIVES for o in objects) else ()
 
 
-def _from_urdf(objects: list) -> LinkCapsules:
+def _from_urdf(objects: tuple) -> LinkCapsules:
     """Capsules of the URDF's collision elements: a capsule or cylinder along its local z axis (its half length
     each way), a sphere a capsule of length 0, each held by the element's joint."""
     anchors, a, b, radius, names = [], [], [], [], []
@@ -238,13 +240,9 @@ def geometry_model(robot: Robot, capsules: LinkCapsules | None = None) -> pin.Ge
 
 def _z_to(d: np.ndarray) -> np.ndarray:
     """A rotation taking the z axis to the direction of ``d`` (the identity for ``d`` = 0: a sphere)."""
-    length = np.linalg.norm(d)
-    if length < 1e-12:
+    if np.linalg.norm(d) < 1e-12:
         return np.eye(3)
-    z = d / length
-    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])
+    return pin.Quaternion.FromTwoVectors(np.array([0.0, 0.0, 1.0]), d).matrix()
 
 
 @functools.lru_cache(maxsize=16)

@@ -10,12 +10,12 @@ arrays the control tick's kernels read (:mod:`qpnso.model.distance`'s ``segment_
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import ClassVar
 
 import numpy as np
+import pinocchio as pin
 
 from qpnso.model.distance import BOX, CAPSULE, SPHERE
 from qpnso.settings import SettingError, check, from_dict, out_of_range, show
@@ -46,6 +46,12 @@ class Obstacle:
         rest = {k: v for k, v in values.items() if k != "type"}
         return from_dict(kinds[name], rest, where or kinds[name].__name__)
 
+    def __post_init__(self) -> None:
+        """Types (:func:`qpnso.settings.check`), then a radius, where the shape has one, > 0 m."""
+        check(self)
+        if not getattr(self, "radius", 1.0) > 0:
+            raise out_of_range(self, "radius", "must be > 0 m")
+
     def to_dict(self) -> dict:
         """Plain data, ``type`` first, fields that are None left out (a TOML table): :meth:`from_dict` of it gives
         an equal obstacle."""
@@ -66,11 +72,6 @@ class Sphere(Obstacle):
     kind: ClassVar[int] = SPHERE
     type_name: ClassVar[str] = "sphere"
 
-    def __post_init__(self) -> None:
-        check(self)
-        if not self.radius > 0:
-            raise out_of_range(self, "radius", "must be > 0 m")
-
     def arrays(self):
         c = np.array(self.center)
         return self.kind, c, c, np.eye(3), np.zeros(3), self.radius
@@ -85,11 +86,6 @@ class Capsule(Obstacle):
     radius: float
     kind: ClassVar[int] = CAPSULE
     type_name: ClassVar[str] = "capsule"
-
-    def __post_init__(self) -> None:
-        check(self)
-        if not self.radius > 0:
-            raise out_of_range(self, "radius", "must be > 0 m")
 
     def arrays(self):
         return self.kind, np.array(self.a), np.array(self.b), np.eye(3), np.zeros(3), self.radius
@@ -109,7 +105,7 @@ class Box(Obstacle):
     type_name: ClassVar[str] = "box"
 
     def __post_init__(self) -> None:
-        check(self)
+        super().__post_init__()
         if not min(self.half_extents) > 0:
             raise out_of_range(self, "half_extents", "must be > 0 m each")
         if self.rotation is not None and self.rpy_deg is not None:
@@ -125,28 +121,12 @@ class Box(Obstacle):
         if self.rotation is not None:
             return np.array(self.rotation)
         if self.rpy_deg is not None:
-            r, p, y = (math.radians(a) for a in self.rpy_deg)
-            return rot_z(y) @ rot_y(p) @ rot_x(r)
+            return pin.rpy.rpyToMatrix(*np.radians(self.rpy_deg))
         return np.eye(3)
 
     def arrays(self):
         c = np.array(self.center)
         return self.kind, c, c, self.matrix, np.array(self.half_extents), 0.0
-
-
-def rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def as_obstacles(values: object, where: str = "obstacles") -> tuple[Obstacle, ...]:

@@ -22,9 +22,7 @@ from qpnso.control.flags import FLAG_OBSTACLE
 from qpnso.control.memory import KEEP_OUT_ROWS
 from qpnso.control.rows.damper import damper
 from qpnso.elbow.clearance import pair_distance
-
-OBSTACLE_ROW_ROOM = KEEP_OUT_ROWS
-"""Keep-out rows a tick holds at most (the nearest pairs within the influence distance)."""
+from qpnso.linalg import dot
 
 OBSTACLE_SLACK_REPORTED = 1e-4
 """m/s: a keep-out row violated by more than this (the null space cannot keep it) is flagged ``OBSTACLE``."""
@@ -81,10 +79,7 @@ def keep_out_torque(pb, r, P, m, dq_meas, tau_null):
     G = P.geo
     scale = G.row_scale
     for k in range(r.obstacle_first, r.obstacle_first + r.obstacle_rows):
-        v = 0.0
-        for j in range(dq_meas.shape[0]):
-            v += pb.soft_C[k, j] * dq_meas[j]
-        force = G.damping * max((pb.soft_l[k] - v) / scale, 0.0)
+        force = G.damping * max((pb.soft_l[k] - dot(pb.soft_C[k], dq_meas)) / scale, 0.0)
         force += G.stiffness * max(G.margin - m.keep_out_d[k - r.obstacle_first], 0.0)
         if force > 0.0:
             for j in range(dq_meas.shape[0]):
@@ -109,10 +104,7 @@ def obstacle_bits(pb, x, r, P):
         return FLAG_OBSTACLE
     scale = P.geo.row_scale
     for k in range(r.obstacle_first, r.obstacle_first + r.obstacle_rows):
-        v = 0.0
-        for j in range(x.shape[0]):
-            v += pb.soft_C[k, j] * x[j]
-        if (pb.soft_l[k] - v) / scale > OBSTACLE_SLACK_REPORTED:
+        if (pb.soft_l[k] - dot(pb.soft_C[k], x)) / scale > OBSTACLE_SLACK_REPORTED:
             return FLAG_OBSTACLE
     return 0
 
@@ -125,8 +117,6 @@ def soft_violation(pb, x, skip_first, skip_count):
     for k in range(pb.n_soft):
         if skip_first <= k < skip_first + skip_count:
             continue
-        v = 0.0
-        for j in range(x.shape[0]):
-            v += pb.soft_C[k, j] * x[j]
+        v = dot(pb.soft_C[k], x)
         worst = max(worst, pb.soft_l[k] - v, v - pb.soft_u[k], 0.0)
     return worst

@@ -223,7 +223,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     strategy = settings.get("strategy", sc.controller.get("strategy", "qp"))
     out = Path(args.out)
     result.save(out / "result.npz")
-    write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": strategy, **result.summary})
+    write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": strategy, **result.summary, **result.setup})
     if plot:
         plot_run(result.arrays, out / "run.png", title=f"scenario {sc.name}, strategy {strategy}")
     title = f"scenario {sc.name} ({sc.description}), strategy {strategy}{_unknown_note(args)} -> {out}"
@@ -340,9 +340,10 @@ def comparison_table(rows: list, sc, note: str = "") -> str:
     lines = [
         f"scenario {sc.name} ({sc.description}), safety margin {margin:g} deg{note}",
         "",
-        "| strategy | Δ elbow mobility (deg) | Δc proximity (deg) | Δc ≥ margin | S smoothness | "
-        "tool error max (mm) | work per metre (N) | tick median (µs) |" + (CLEARANCE_HEAD if room else ""),
-        "|---|---|---|---|---|---|---|---|" + ("---|" * CLEARANCE_HEAD.count("|") if room else ""),
+        "| strategy | Δ elbow mobility (deg) | Δc proximity (deg) | Δc ≥ margin | S per segment (median) | "
+        "tool from intended, max (mm) | work per metre (N) | hand work (J) | felt mass, mean (kg) | "
+        "tick median (µs) |" + (CLEARANCE_HEAD if room else ""),
+        "|---|---|---|---|---|---|---|---|---|---|" + ("---|" * CLEARANCE_HEAD.count("|") if room else ""),
     ]
     for name, m in rows:
         if "error" in m:
@@ -354,7 +355,8 @@ def comparison_table(rows: list, sc, note: str = "") -> str:
             f"{'yes' if m.get('constraint_proximity_deg', -1) >= margin else 'no'} | "
             f"{m.get('smoothness', float('nan')):.0f} | "
             f"{1000 * m.get('tool_position_error_max_m', float('nan')):.2f} | "
-            f"{m.get('user_work_per_metre_N', float('nan')):.2f} | {m.get('tick_time_median_us', float('nan')):.0f} |"
+            f"{m.get('user_work_per_metre_N', float('nan')):.2f} | {m.get('hand_work_J', float('nan')):.3f} | "
+            f"{m.get('mass_mean_kg', float('nan')):.2f} | {m.get('tick_time_median_us', float('nan')):.0f} |"
             + (clearance_cells(m) if room else "")
         )
     return "\n".join(lines)

@@ -113,6 +113,7 @@ class RunResult:
     messages: list[str] = field(default_factory=list)
     failure: str = ""
     first_obstacle: ObstacleTick | None = None
+    setup: dict[str, Any] = field(default_factory=dict)  # what ran it, as plain data (a simulation's plant, surgeon)
 
     @property
     def ok(self) -> bool:
@@ -279,12 +280,15 @@ class Recorder:
     for the whole run at once: ``mass``, the largest principal mass felt at the tool (kg), and
     ``friction_force``, the potential friction force magnitude (N, √c_f), both at the measured ``q``
     (:meth:`~qpnso.model.costs.CostModel.felt`, every ``feel_every``-th tick, NaN in between), and the tool's
-    position and rotation errors.
+    position and rotation errors.  With ``felt`` (``qs (N, nq) → (mass (N,), friction force (N,))``, e.g. a
+    simulated plant's :meth:`~qpnso.lab.plant.Plant.felt`), ``mass`` and ``friction_force`` are what it
+    gives and the controller's own estimates are ``mass_model`` and ``friction_model``.
     """
 
-    def __init__(self, ctrl: Controller, feel_every: int = 1) -> None:
+    def __init__(self, ctrl: Controller, feel_every: int = 1, felt=None) -> None:
         self.ctrl = ctrl
         self.feel_every = max(1, int(feel_every))
+        self.felt = felt
         ctrl.cost.felt_function()  # (made now: a background compile of it runs during the run)
         self.rec: dict[str, list] = {k: [] for k in _TICK_KEYS}
         self.messages: list[str] = []
@@ -330,8 +334,13 @@ class Recorder:
         arrays = {k: np.asarray(v) for k, v in self.rec.items()}
         q = arrays["q"].reshape(-1, self.ctrl.robot.nq)
         felt = np.arange(q.shape[0]) % self.feel_every == 0
-        arrays["mass"], arrays["friction_force"] = np.full(q.shape[0], np.nan), np.full(q.shape[0], np.nan)
-        arrays["mass"][felt], arrays["friction_force"][felt] = self.ctrl.cost.felt(q[felt])
+        model_keys = ("mass", "friction_force") if self.felt is None else ("mass_model", "friction_model")
+        sources = [(model_keys, self.ctrl.cost.felt)]
+        if self.felt is not None:
+            sources.append((("mass", "friction_force"), self.felt))
+        for (mass_key, friction_key), felt_at in sources:
+            arrays[mass_key], arrays[friction_key] = np.full(q.shape[0], np.nan), np.full(q.shape[0], np.nan)
+            arrays[mass_key][felt], arrays[friction_key][felt] = felt_at(q[felt])
         tool_R, ref_R = arrays.pop("tool_rotation"), arrays.pop("ref_rotation")
         arrays["tool_position_error"] = np.linalg.norm(arrays["ref_position"] - arrays["tool_position"], axis=-1)
         arrays["tool_rotation_error"] = rotation_angle(ref_R @ np.swapaxes(tool_R, -1, -2))
@@ -492,9 +501,10 @@ def tool_error_check(
 
 
 def feel_summary(arrays: dict[str, np.ndarray]) -> dict[str, float]:
-    """Mean and worst felt mass (kg) and friction force (N) over the recorded ticks."""
+    """Mean and worst felt mass (kg) and friction force (N) over the recorded ticks, and the controller's
+    estimates of them when a plant's are recorded beside them (``mass_model``, ``friction_model``)."""
     out = {}
-    for key, unit in (("mass", "kg"), ("friction_force", "N")):
+    for key, unit in (("mass", "kg"), ("friction_force", "N"), ("mass_model", "kg"), ("friction_model", "N")):
         v = np.asarray(arrays.get(key, []), dtype=float)
         v = v[np.isfinite(v)]
         if v.size:

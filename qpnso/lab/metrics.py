@@ -7,6 +7,7 @@ times in s; forces in N.  Every function checks its input and raises
 
 from __future__ import annotations
 
+import math
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -100,6 +101,68 @@ def smoothness(t, p) -> float:
     jerk = np.diff(a, n=3, axis=0) / dt**3
     duration = float(t[-1] - t[0])
     return float(np.sqrt(duration**5 / length**2 * np.sum(jerk**2) * dt))
+
+
+def low_pass(t, p, cutoff_hz: float) -> np.ndarray:
+    """Positions ``p`` (N, k) sampled at the uniform times ``t`` (N,) s, low-passed at ``cutoff_hz`` by a
+    2nd-order Butterworth filter run forwards and backwards (zero phase, SciPy's ``sosfiltfilt``)."""
+    from scipy import signal
+
+    dt = uniform_period(t)
+    a = _array(p, "p", 2)
+    if not (math.isfinite(cutoff_hz) and 0 < cutoff_hz < 0.5 / dt):
+        raise InputError(f"cutoff_hz must be in (0, {0.5 / dt:g}) Hz for samples every {dt:g} s, got {cutoff_hz}")
+    sos = signal.butter(2, cutoff_hz, fs=1.0 / dt, output="sos")
+    return signal.sosfiltfilt(sos, a, axis=0)
+
+
+def segment_smoothness(t, p, segments: Sequence[tuple[float, float]], cutoff_hz: float) -> dict[str, float]:
+    """The smoothness S [E 14] of each segment of a record, on positions low-passed at ``cutoff_hz``
+    (:func:`low_pass`): segment k's window runs from its start to the next segment's start (the last: to the
+    end of the record), so each record ends at rest when the motion rests between segments.
+
+    ``t`` (N,) s uniform; ``p`` (N, 3) m; ``segments`` the (t0, t1) s of each move.  Keys:
+    ``smoothness_segment_<k>`` (k from 1) and ``smoothness`` (their median); none without segments.
+    S does not depend on a segment's duration or size; over K equal segments taken at once it grows like K².
+    """
+    ts = _array(t, "t", 1)
+    if not len(segments):
+        return {}
+    smooth = low_pass(ts, p, cutoff_hz)
+    starts = [float(a) for a, _ in segments] + [float(ts[-1]) + 1.0]
+    out: dict[str, float] = {}
+    for k, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
+        window = (ts >= a - 1e-9) & (ts < b - 1e-9)
+        if np.count_nonzero(window) >= 4 and path_length(smooth[window]) > 0:
+            out[f"smoothness_segment_{k + 1}"] = smoothness(ts[window], smooth[window])
+    values = list(out.values())
+    if values:
+        out["smoothness"] = float(np.median(values))
+    return out
+
+
+def hand_summary(t, wrench, twist, p) -> dict[str, float]:
+    """What the hand did in a run: ``hand_work_J`` = ∫|F·v + M·ω| dt (J), the absolute work of the hand's
+    wrench (N, N·m) on the tool's twist (m/s, rad/s), (N, 6) each, world frame; ``tool_displacement_max_m``,
+    the tool point's largest distance (m) from where it started; ``orthogonal_torque_mean_Nm``, the mean
+    magnitude of the hand's moment orthogonal to the tool's direction of motion over the ticks in which the
+    tool moves faster than 1 mm/s (the mass/friction paper's Fig. 10b; NaN when it never does)."""
+    ts = _array(t, "t", 1, min_len=2)
+    f = _array(wrench, "wrench", 2, 6)
+    v = _array(twist, "twist", 2, 6)
+    pos = _array(p, "p", 2, 3)
+    _same_length(t=ts, wrench=f, twist=v, p=pos)
+    power = np.abs(np.einsum("ij,ij->i", f, v))
+    speed = np.linalg.norm(v[:, :3], axis=1)
+    moving = speed > 1e-3
+    u = v[moving, :3] / speed[moving, None]
+    m = f[moving, 3:]
+    orthogonal = m - np.einsum("ij,ij->i", m, u)[:, None] * u
+    return {
+        "hand_work_J": float(np.sum(0.5 * (power[1:] + power[:-1]) * np.diff(ts))),
+        "tool_displacement_max_m": float(np.max(np.linalg.norm(pos - pos[0], axis=1))),
+        "orthogonal_torque_mean_Nm": float(np.mean(np.linalg.norm(orthogonal, axis=1))) if moving.any() else math.nan,
+    }
 
 
 def rotation_angles(r_ref, r) -> np.ndarray:

@@ -32,6 +32,8 @@ from qpnso.settings import SettingError, check, from_dict, out_of_range, read_to
 
 if TYPE_CHECKING:
     from qpnso.control.offline import RunResult
+    from qpnso.lab.simulation import SimulationConfig
+    from qpnso.lab.surgeon import IntendedMotion
 
 SCENARIO_DIR = Path(__file__).resolve().parents[2] / "examples" / "scenarios"
 """Where the shipped scenario files are."""
@@ -50,8 +52,11 @@ class Scenario:
     branch: tuple[int, int, int]
     path_size: float = 0.08
     path_speed: float = 0.05
+    path_kind: str = "guidance"
+    hold_duration: float = 5.0
     controller: dict = field(default_factory=dict)
     obstacles: tuple[Obstacle, ...] = ()  # the room's keep-out volumes (world frame, m)
+    surgeon: dict = field(default_factory=dict)  # the scenario's surgeon (:class:`qpnso.lab.surgeon.Subject`)
 
     def tool_pose(self) -> pin.SE3:
         """Tool pose at the path centre (world frame)."""
@@ -65,8 +70,18 @@ class Scenario:
         return robot.check_q(ik(robot, self.tool_pose(), np.radians(self.ns0_deg), Branch(*self.branch)), "start")
 
     def path(self, dt: float = 0.01) -> Trajectory:
-        """The guidance path around the centre pose."""
+        """The guidance path around the centre pose (the elbow paper's, minimum-jerk timed)."""
         return guidance_path(self.tool_pose(), size=self.path_size, speed=self.path_speed, dt=dt)
+
+    def motion(self, speed_scale: float = 1.0) -> "IntendedMotion":
+        """What the surgeon intends: the guidance task timed by the two-thirds power law, each segment ending
+        at rest (:func:`qpnso.lab.surgeon.guidance_motion`), or, for a ``hold`` path, the tool held still at
+        the centre pose for ``hold_duration`` s.  ``speed_scale`` scales the path's speed (a subject's)."""
+        from qpnso.lab.surgeon import guidance_motion, hold_motion
+
+        if self.path_kind == "hold":
+            return hold_motion(self.tool_pose(), self.hold_duration)
+        return guidance_motion(self.tool_pose(), self.path_size, self.path_speed * speed_scale)
 
 
 @dataclass(frozen=True)
@@ -98,17 +113,19 @@ class StartTable:
 
 @dataclass(frozen=True)
 class PathTable:
-    """``[path]``: the guidance path (lemniscates) around the centre pose."""
+    """``[path]``: the guidance path (lemniscates) around the centre pose, or ``kind = "hold"``: the tool
+    held still there for ``duration`` s."""
 
     kind: str = "guidance"
     size: float = 0.08  # m, tip to tip
     speed: float = 0.05  # m/s, peak tool speed
+    duration: float = 5.0  # s, of a hold
 
     def __post_init__(self) -> None:
         check(self)
-        if self.kind != "guidance":
-            raise out_of_range(self, "kind", "must be 'guidance'")
-        for name in ("size", "speed"):
+        if self.kind not in ("guidance", "hold"):
+            raise out_of_range(self, "kind", "must be 'guidance' or 'hold'")
+        for name in ("size", "speed", "duration"):
             if getattr(self, name) <= 0:
                 raise out_of_range(self, name, "must be > 0")
 
@@ -124,6 +141,7 @@ class ScenarioFile:
     path: PathTable = field(default_factory=PathTable)
     controller: dict = field(default_factory=dict)
     obstacles: tuple[Obstacle, ...] = ()
+    surgeon: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         check(self)
@@ -158,6 +176,9 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         ControllerConfig.from_dict({**f.controller, "obstacles": f.obstacles})
     except SettingError as exc:
         raise exc.within("controller", str(p)) from None
+    from qpnso.lab.surgeon import Subject
+
+    Subject.from_dict(f.surgeon, str(p))
     return Scenario(
         name=f.scenario.name,
         description=f.scenario.description,
@@ -168,8 +189,11 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         branch=f.start.branch,
         path_size=f.path.size,
         path_speed=f.path.speed,
+        path_kind=f.path.kind,
+        hold_duration=f.path.duration,
         controller=dict(f.controller),
         obstacles=f.obstacles,
+        surgeon=dict(f.surgeon),
     )
 
 
@@ -178,10 +202,12 @@ def run_scenario(
 ) -> dict[str, float]:
     """Simulate hands-on guidance of scenario ``name`` with ``strategy``; the run's metrics.
 
-    ``duration_scale`` < 1 runs only the start of the path (for quick checks).
-    ``seed`` is accepted for the study runner; the simulation is deterministic.
+    ``duration_scale`` < 1 runs only the start of the path (for quick checks).  ``seed`` seeds the
+    surgeon's force noise (the default surgeon, no model error).
     """
-    return simulate_scenario(name, strategy, duration_scale, progress).summary
+    from qpnso.lab.simulation import SimulationConfig
+
+    return simulate_scenario(name, strategy, duration_scale, progress, simulation=SimulationConfig(noise_seed=seed)).summary
 
 
 def simulate_scenario(
@@ -191,13 +217,17 @@ def simulate_scenario(
     progress=None,
     settings: dict | None = None,
     ignore_obstacles: bool = False,
+    simulation: "SimulationConfig | None" = None,
 ) -> "RunResult":
     """Simulate scenario ``name``: the per-tick arrays and summary (:class:`qpnso.control.offline.RunResult`).
 
     Controller settings: the scenario file's ``[controller]`` and ``[[obstacles]]``, then ``settings``
     (e.g. a user's config file and CLI flags), then ``strategy`` if given.  The obstacles so resolved are the
     room's: the simulation measures every link's clearance to them (coal); with ``ignore_obstacles`` the
-    controller does not get them (it runs as if the room were empty).
+    controller does not get them (it runs as if the room were empty).  ``simulation``: the plant, surgeon and
+    model error (default :class:`qpnso.lab.simulation.SimulationConfig` with the scenario's ``[surgeon]``
+    table, if any); the surgeon intends
+    :meth:`Scenario.motion` at its speed scale.
     """
     from qpnso.control.config import ControllerConfig
     from qpnso.control.controller import Controller
@@ -208,11 +238,12 @@ def simulate_scenario(
     values = {**sc.controller, **({"obstacles": sc.obstacles} if sc.obstacles else {}), **(settings or {})}
     if strategy is not None:
         values["strategy"] = strategy
-    path = sc.path()
-    if duration_scale < 1.0:
-        path = path.window(path.t[0], path.t[0] + duration_scale * path.duration)
+    from qpnso.lab.simulation import SimulationConfig
+
+    sim = simulation or SimulationConfig(surgeon=sc.surgeon)
+    motion = sc.motion(sim.surgeon.speed_scale).start(duration_scale)
     config = ControllerConfig.from_dict(values)
     room = config.obstacles
     if ignore_obstacles:
         config = replace(config, obstacles=())
-    return simulate(Controller(robot, config), path, sc.start(robot), progress=progress, room=room)
+    return simulate(Controller(robot, config), motion, sc.start(robot), sim, progress=progress, room=room)

@@ -275,6 +275,7 @@ def load_robot(
     tool_frame: str | None = None,
     tool_offset: object = None,
     friction: JointFriction | None = None,
+    armature: object = None,
 ) -> Robot:
     """Load a shipped robot (``"lwr4p"``, ``"iiwa14"``, ``"panda"``) or a URDF file.
 
@@ -282,9 +283,12 @@ def load_robot(
     the flange, for shipped URDFs; ``"panda_link8"`` for the Panda).
     ``tool_offset`` is the tool point in that frame: a 3-vector (m) or a
     ``pinocchio.SE3``.  ``friction`` overrides the per-joint friction of
-    ``models/friction.json``.
+    ``models/friction.json``.  ``armature`` (kg·m², one per joint) overrides the reflected rotor inertia of
+    ``models/armature.json`` (shipped robots; a user URDF gets none unless given): it is part of the model's
+    A(q) (Pinocchio's ``model.armature``), so of the costs, the projector and the simulated plant alike.
     """
     name, model, source = _load_model(name_or_path)
+    model.armature = _armature(name, model) if armature is None else _checked_armature(armature, model.nv)
     frame_name = tool_frame or DEFAULT_TOOL_FRAME.get(name, "tool")
     tool_id = _add_tool_frame(model, frame_name, _as_se3(tool_offset))
     return Robot(name, model, tool_id, friction or _default_friction(name, model), source)
@@ -374,12 +378,31 @@ def _default_friction(name: str, model: pin.Model) -> JointFriction:
     return friction_from_lists(tau, [default["beta_s_per_rad"][0]] * model.nv, model.nv)
 
 
+def _armature(name: str, model: pin.Model) -> np.ndarray:
+    """The reflected rotor inertias (kg·m²) of ``models/armature.json`` for a shipped robot, else the
+    model's own (zero for a URDF, which has no field for it)."""
+    table = _json_table(MODELS_DIR / "armature.json")
+    if name in table:
+        return _checked_armature(table[name]["armature_kgm2"], model.nv)
+    return np.array(model.armature, dtype=float)
+
+
+def _checked_armature(values: object, n: int) -> np.ndarray:
+    """``values`` as ``n`` armatures >= 0 kg·m², or :class:`InputError`."""
+    a = as_vector(values, n, "armature")
+    if np.any(a < 0):
+        raise InputError(f"armature must be >= 0 kg·m² for every joint, got {a.tolist()}")
+    return a
+
+
+def _json_table(path: Path) -> dict:
+    """A per-robot table of ``models/`` (empty when the file is missing)."""
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
 def load_friction_table(path: Path | None = None) -> dict:
     """The per-robot friction parameters of ``models/friction.json``."""
-    p = path or MODELS_DIR / "friction.json"
-    if not p.is_file():
-        return {}
-    return json.loads(p.read_text())
+    return _json_table(path or MODELS_DIR / "friction.json")
 
 
 def friction_from_lists(tau_max: Sequence[float], beta: Sequence[float], n: int) -> JointFriction:

@@ -116,12 +116,18 @@ def low_pass(t, p, cutoff_hz: float) -> np.ndarray:
     return signal.sosfiltfilt(sos, a, axis=0)
 
 
+REST_SPEED = 0.005
+"""m/s: the tool speed under which a segment's record ends (its low-passed speed; the force noise keeps a
+held tool moving by about 1 mm/s)."""
+
+
 def segment_smoothness(t, p, segments: Sequence[tuple[float, float]], cutoff_hz: float) -> dict[str, float]:
     """The smoothness S [E 14] of each segment of a record, on positions low-passed at ``cutoff_hz``
-    (:func:`low_pass`): segment k's window runs from its start to the next segment's start (the last: to the
-    end of the record), so each record ends at rest when the motion rests between segments.
+    (:func:`low_pass`).  Segment k's record starts where the intended move starts and ends at rest: the
+    first tick after the intended move's end at which the low-passed tool speed is below
+    :data:`REST_SPEED` (at the latest where the next segment starts, or the record's end).
 
-    ``t`` (N,) s uniform; ``p`` (N, 3) m; ``segments`` the (t0, t1) s of each move.  Keys:
+    ``t`` (N,) s uniform; ``p`` (N, 3) m; ``segments`` the (t0, t1) s of each intended move.  Keys:
     ``smoothness_segment_<k>`` (k from 1) and ``smoothness`` (their median); none without segments.
     S does not depend on a segment's duration or size; over K equal segments taken at once it grows like K².
     """
@@ -129,10 +135,13 @@ def segment_smoothness(t, p, segments: Sequence[tuple[float, float]], cutoff_hz:
     if not len(segments):
         return {}
     smooth = low_pass(ts, p, cutoff_hz)
+    speed = np.concatenate([[0.0], np.linalg.norm(np.diff(smooth, axis=0), axis=1) / np.diff(ts)])
     starts = [float(a) for a, _ in segments] + [float(ts[-1]) + 1.0]
     out: dict[str, float] = {}
-    for k, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
-        window = (ts >= a - 1e-9) & (ts < b - 1e-9)
+    for k, ((a, b), limit) in enumerate(zip(segments, starts[1:])):
+        resting = np.flatnonzero((ts >= b) & (ts < limit) & (speed < REST_SPEED))
+        end = ts[resting[0]] if resting.size else limit
+        window = (ts >= a - 1e-9) & (ts <= end + 1e-9)
         if np.count_nonzero(window) >= 4 and path_length(smooth[window]) > 0:
             out[f"smoothness_segment_{k + 1}"] = smoothness(ts[window], smooth[window])
     values = list(out.values())

@@ -58,7 +58,7 @@ class SimulationConfig:
     surgeon (a :class:`Subject` or a dict), the plant's :class:`ModelError` (or a dict), the force noise's
     seed and the smoothness filter's cut-off (Hz)."""
 
-    timestep: float = 5e-4
+    timestep: float = 1e-3
     surgeon: Subject = field(default_factory=Subject)
     model_error: ModelError = field(default_factory=ModelError)
     noise_seed: int = 0

@@ -103,9 +103,14 @@ def test_mass_matrix_is_symmetric_positive_definite(lwr, rng) -> None:
 
 
 def test_mass_matrix_matches_kinetic_energy(lwr, rng) -> None:
-    """½ dqᵀ A dq equals Pinocchio's kinetic energy computed from link velocities."""
+    """½ dqᵀ A dq equals the links' kinetic energy computed by Pinocchio from their velocities (a copy of the
+    model without rotors) plus the rotors' ½ Σ armature·dq²."""
     q, dq = lwr.random_q(rng), rng.normal(size=7)
-    energy = pin.computeKineticEnergy(lwr.model, lwr.model.createData(), q, dq)
+    links = lwr.model.copy()
+    links.armature = np.zeros(7)
+    energy = pin.computeKineticEnergy(links, links.createData(), q, dq)
+    energy += 0.5 * np.sum(lwr.model.armature * dq**2)
+    assert np.all(lwr.model.armature > 0)
     assert np.isclose(0.5 * dq @ lwr.mass_matrix(q) @ dq, energy, rtol=1e-12)
 
 

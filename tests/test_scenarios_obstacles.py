@@ -135,7 +135,7 @@ def test_comparison_table_has_clearance_columns_only_with_obstacles(microscope_r
     assert "clearance min (mm, coal)" in with_room and "(note)" in with_room
     assert f"{1000 * microscope_run.summary['clearance_min_m']:.1f} |" in with_room.splitlines()[-1]
     header = comparison_table(rows, load_scenario("B")).splitlines()[2]
-    assert "clearance" not in header and header.count("|") == 9
+    assert "clearance" not in header and header.count("|") == 11
 
 
 def test_clearance_summary_by_hand() -> None:

@@ -22,11 +22,12 @@ from qpnso.cli import main
 from qpnso.control.config import ControllerConfig
 from qpnso.control.offline import load_config
 from qpnso.lab.scenarios import SCENARIO_DIR, load_scenario
-from qpnso.lab.simulation import HandModel, SimulationConfig
+from qpnso.lab.simulation import SimulationConfig
+from qpnso.lab.surgeon import Subject
 from qpnso.model.costs import CostWeights
 from qpnso.qp import QPSettings
 
-SETTINGS_CLASSES = (ControllerConfig, CostWeights, QPSettings, SimulationConfig, HandModel)
+SETTINGS_CLASSES = (ControllerConfig, CostWeights, QPSettings, SimulationConfig, Subject)
 
 
 # --------------------------------------------------------------- through the API
@@ -70,8 +71,8 @@ def test_unknown_keys_are_listed_with_the_valid_ones() -> None:
         qpnso.ConfigError, match=r"unknown keys 'colour', 'shape'; valid keys: compile, cost_filter_time"
     ):
         ControllerConfig.from_dict({"shape": 1, "colour": "red"})
-    with pytest.raises(qpnso.ConfigError, match=r"hand: unknown key 'stifness'; valid keys: damping, "):
-        SimulationConfig(hand={"stifness": 3.0})
+    with pytest.raises(qpnso.ConfigError, match=r"surgeon: unknown key 'stifness'; valid keys: damping, "):
+        SimulationConfig(surgeon={"stifness": 3.0})
 
 
 @pytest.mark.parametrize(
@@ -91,11 +92,11 @@ def test_unknown_keys_are_listed_with_the_valid_ones() -> None:
         (lambda: QPSettings(max_iter_active_set=0), "QPSettings: max_iter_active_set = 0: must be > 0"),
         (lambda: QPSettings(max_iter=0), "max_iter = 0: must be > 0"),
         (lambda: QPSettings(regularization=-1e-3), "regularization = -0.001: must be >= 0 or None"),
-        (lambda: SimulationConfig(substeps=0), "substeps = 0: must be >= 1"),
-        (lambda: SimulationConfig(armature=-1), "armature = -1.0: must be >= 0"),
-        (lambda: SimulationConfig(hand={"damping": -1}), "hand.damping = -1.0: must be >= 0"),
-        (lambda: HandModel(stiffness="600"), "stiffness = '600': expected a finite number"),
-        (lambda: SimulationConfig(substeps=2.5), "substeps = 2.5: expected an integer"),
+        (lambda: SimulationConfig(timestep=0), "timestep = 0.0: must be > 0 s"),
+        (lambda: SimulationConfig(model_error={"mass": -1}), "model_error.mass = -1.0: must be >= 0"),
+        (lambda: SimulationConfig(surgeon={"damping": -1}), "surgeon.damping = -1.0: must be >= 0"),
+        (lambda: Subject(stiffness="600"), "stiffness = '600': expected a finite number"),
+        (lambda: SimulationConfig(noise_seed=2.5), "noise_seed = 2.5: expected an integer"),
     ],
 )
 def test_range_errors_name_key_value_and_range(make, message) -> None:
@@ -145,7 +146,7 @@ def test_dict_round_trip_and_nested_dicts() -> None:
     assert cfg.weights == CostWeights(mass=1.0) and isinstance(cfg.weights.mass, float)
     assert ControllerConfig.from_dict(cfg.to_dict()) == cfg
     assert ControllerConfig(weights={"mass": 1}).weights == CostWeights(mass=1.0)
-    assert SimulationConfig.from_dict({"hand": {"stiffness": 100}}).hand.stiffness == 100.0
+    assert SimulationConfig.from_dict({"surgeon": {"stiffness": 100}}).surgeon.stiffness == 100.0
     assert QPSettings.from_dict({"max_iter_active_set": 20}).max_iter_active_set == 20
     assert CostWeights.from_dict({"mass": 0}).mass == 0.0
 
@@ -300,9 +301,13 @@ def _scenario(tmp_path: Path, old: str, new: str) -> Path:
         ("branch = [-1, 1, -1]", "branch = [-1, 1]", "start.branch = [-1, 1]: expected a list of 3 integers"),
         ("branch = [-1, 1, -1]", "branch = [-1, 2, -1]", "start.branch = (-1, 2, -1): must be three signs"),
         ('name = "A"', "name = 1", "scenario.name = 1: expected a string"),
-        ("size = 0.08", "size = 0.08\ncolour = 1", "path: unknown key 'colour'; valid keys: kind, size, speed"),
+        (
+            "size = 0.08",
+            "size = 0.08\ncolour = 1",
+            "path: unknown key 'colour'; valid keys: duration, kind, size, speed",
+        ),
         ("size = 0.08", "size = -0.08", "path.size = -0.08: must be > 0"),
-        ('kind = "guidance"', 'kind = "circle"', "path.kind = 'circle': must be 'guidance'"),
+        ('kind = "guidance"', 'kind = "circle"', "path.kind = 'circle': must be 'guidance' or 'hold'"),
         ("cost_filter_time = 0.3", 'cost_filter_time = "0.3"', "controller.cost_filter_time = '0.3': expected"),
         (
             "cost_filter_time = 0.3",

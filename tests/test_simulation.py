@@ -1,4 +1,5 @@
-"""The hands-on simulation's integrator against Pinocchio's ABA (explicit, tiny steps)."""
+"""The MuJoCo plant against Pinocchio, the felt mass and friction against an independent computation, the hold
+protocol, and the smoothness per segment (issue 14)."""
 
 from __future__ import annotations
 
@@ -7,63 +8,153 @@ import pinocchio as pin
 import pytest
 
 import qpnso
-from qpnso.lab.simulation import HandModel, SimulationConfig, _integrate, _tool_state
+from qpnso.lab.metrics import segment_smoothness, smoothness
+from qpnso.lab.plant import ModelError, Plant, PlantParameters
+from qpnso.lab.scenarios import simulate_scenario
+from qpnso.lab.simulation import SimulationConfig, simulate
+from qpnso.lab.surgeon import Subject, hold_motion
 
 
-def explicit_step(model, data, q, dq, tau, robot, tool_id, h, hand, ref):
-    """Forward Euler with every force at the current velocity (the reference)."""
-    tool = _tool_state(model, data, q, dq, tool_id)
-    pin.computeJointJacobians(model, data, q)
-    jac = pin.getFrameJacobian(model, data, tool_id, pin.LOCAL_WORLD_ALIGNED)
-    total = tau + jac.T @ hand.wrench(ref, tool) - robot.friction.torque(dq)
-    ddq = pin.aba(model, data, q, dq, total)
-    return q + h * (dq + h * ddq), dq + h * ddq
+# ------------------------------------------------------------------ one robot, two engines
+@pytest.mark.parametrize("name", ["lwr4p", "iiwa14"])
+def test_mujoco_and_pinocchio_agree_on_mass_gravity_and_jacobian(name) -> None:
+    """Must hold: M, g and the tool Jacobian to 1e-9 on 1000 random configurations, armature included."""
+    robot = qpnso.load_robot(name)
+    assert np.all(robot.model.armature > 0)  # (the armature is part of the model: models/armature.json)
+    plant = Plant(robot)
+    rng = np.random.default_rng(7)
+    worst = np.zeros(3)
+    for _ in range(1000):
+        q = robot.random_q(rng)
+        a, g, jac = plant.dynamics(q)
+        errors = [np.abs(a - robot.mass_matrix(q)).max(), np.abs(g - robot.gravity(q)).max()]
+        worst = np.maximum(worst, errors + [np.abs(jac - robot.jacobian(q)).max()])
+    assert np.all(worst < 1e-9), worst
 
 
-def test_linearly_implicit_step_matches_aba_for_small_steps(lwr) -> None:
-    model = lwr.model.copy()
-    model.armature = np.full(7, 0.1)
+def test_a_drawn_plant_is_the_same_robot_in_both_engines(lwr) -> None:
+    """The model error scales MuJoCo's bodies and Pinocchio's inertias alike (the felt checks rely on it)."""
+    params = PlantParameters.draw(lwr, ModelError(mass=0.2, friction=0.1, armature=0.3, torque_offset=0.5, seed=3))
+    assert not np.allclose(params.mass_scale, 1.0) and not np.allclose(params.armature, lwr.model.armature)
+    plant, model = Plant(lwr, params), params.pinocchio_model(lwr)
     data = model.createData()
-    rng = np.random.default_rng(3)
-    q, dq = lwr.random_q(rng, margin=0.3), rng.normal(scale=0.3, size=7)
-    tau = rng.normal(scale=5.0, size=7)
-    hand = HandModel()
-    tool = _tool_state(model, data, q, dq, lwr.tool_frame_id)
-    ref = (tool[0] + 0.01, tool[1], np.zeros(3), np.zeros(3))
-    h = 1e-6
-    q1, dq1 = _integrate(model, data, q, dq, tau, lwr, lwr.tool_frame_id, h, hand, ref)
-    q2, dq2 = explicit_step(model, data, q, dq, tau, lwr, lwr.tool_frame_id, h, hand, ref)
-    accel = np.abs(dq2 - dq).max() / h
-    # the two differ by O(h²·stiffness): relative to one step's change, ~1e-4 at h = 1 µs
-    assert np.abs(dq1 - dq2).max() < 1e-3 * np.abs(dq2 - dq).max() + 1e-12
-    assert np.abs(q1 - q2).max() < 1e-12 + 1e-3 * h * h * accel
-    assert accel > 1.0  # the step really accelerates the joints
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        q = lwr.random_q(rng)
+        a, g, _ = plant.dynamics(q)
+        assert np.allclose(a, pin.crba(model, data, q), atol=1e-9, rtol=0)  # (crba fills the upper triangle)
+        assert np.allclose(np.triu(a), np.triu(data.M), atol=1e-9, rtol=0)
+        assert np.allclose(g, pin.computeGeneralizedGravity(model, data, q), atol=1e-9, rtol=0)
+    assert PlantParameters.draw(lwr, ModelError(seed=3)).mass_scale.tolist() == [1.0] * 7  # no error: nominal
+    same = PlantParameters.draw(lwr, ModelError(mass=0.2, friction=0.1, armature=0.3, torque_offset=0.5, seed=3))
+    assert np.array_equal(same.torque_offset, params.torque_offset)  # seeded
 
 
-def test_stiff_friction_is_stable_at_the_control_rate(lwr) -> None:
-    """With the default reflected inertia, friction (slope 19 N·m·s/rad) at 2 kHz only slows the joints."""
-    model = lwr.model.copy()
-    model.armature = np.full(7, SimulationConfig().armature)
+def test_plant_friction_holds_and_dissipates(lwr) -> None:
+    """Gravity compensated at rest the arm stays (Coulomb holds it); set moving it slows down, never speeds up."""
+    plant = Plant(lwr)
+    q0 = lwr.sample_configuration()
+    plant.reset(q0)
+    for _ in range(200):
+        plant.step(lwr.gravity(plant.q))
+    assert np.abs(plant.q - q0).max() < 1e-6
+    plant.reset(q0, np.full(7, 0.3))
+    energy = []
+    for _ in range(2000):  # 1 s
+        plant.step(lwr.gravity(plant.q))
+        energy.append(0.5 * plant.dq @ lwr.mass_matrix(plant.q) @ plant.dq)
+    assert energy[-1] < 0.01 * energy[0] and max(np.diff(energy)) < 1e-3 * energy[0]  # (MuJoCo's soft Coulomb creeps)
+
+
+# ------------------------------------------------------------------ felt mass and friction are the plant's
+def test_recorded_felt_mass_and_friction_are_the_plants(lwr) -> None:
+    """Must hold: the recorded felt mass and friction equal an independent computation on the plant's model
+    (Pinocchio with the drawn parameters, NumPy) at the recorded configurations; the controller's estimates
+    are recorded beside them."""
+    error = ModelError(mass=0.15, friction=0.2, armature=0.2, seed=5)
+    ctrl = qpnso.Controller(lwr, qpnso.ControllerConfig())
+    q0 = lwr.sample_configuration()
+    result = simulate(ctrl, hold_motion(lwr.tool_pose(q0), 0.1), q0, SimulationConfig(model_error=error))
+    a = result.arrays
+    rows = np.flatnonzero(np.isfinite(a["mass"]))
+    assert rows.size >= 10
+    params = PlantParameters.draw(lwr, error)
+    model = params.pinocchio_model(lwr)
     data = model.createData()
-    q, dq = np.array([0.1, 0.6, -0.2, -1.3, 0.3, 0.9, 0.2]), np.full(7, 0.5)
-    hand = HandModel(stiffness=0.0, damping=0.0, rotational_stiffness=0.0, rotational_damping=0.0)
-    tool = _tool_state(model, data, q, dq, lwr.tool_frame_id)
-    ref = (tool[0], tool[1], np.zeros(3), np.zeros(3))
+    speed = ctrl.cost.potential_speed
+    for k in rows:
+        q = a["q"][k]
+        M = pin.crba(model, data, q)
+        M = np.triu(M) + np.triu(M, 1).T
+        jv = pin.computeFrameJacobian(model, data, q, lwr.tool_frame_id, pin.LOCAL_WORLD_ALIGNED)[:3]
+        lam_inv = jv @ np.linalg.solve(M, jv.T)
+        assert a["mass"][k] == pytest.approx(1.0 / np.linalg.eigvalsh(lam_inv)[0], rel=1e-9)
+        jbar = np.linalg.solve(M, jv.T) @ np.linalg.inv(lam_inv)
+        torques = params.tau_coulomb[:, None] * np.sign(speed * jbar) + params.damping[:, None] * speed * jbar
+        assert a["friction_force"][k] == pytest.approx(np.linalg.norm(jbar.T @ torques), rel=1e-9)
+    model_mass, model_friction = ctrl.cost.felt(a["q"][rows])
+    assert np.allclose(a["mass_model"][rows], model_mass) and np.allclose(a["friction_model"][rows], model_friction)
+    assert not np.allclose(a["mass"][rows], a["mass_model"][rows], rtol=1e-3)  # the error is really there
+    assert result.setup["plant"]["engine"] == "mujoco" and result.setup["model_error"]["mass"] == 0.15
 
-    def kinetic(q, dq):
-        return pin.computeKineticEnergy(model, model.createData(), q, dq)
 
-    energy = [kinetic(q, dq)]
-    for _ in range(200):  # gravity compensated, no hand: friction can only dissipate
-        q, dq = _integrate(model, data, q, dq, lwr.gravity(q), lwr, lwr.tool_frame_id, 5e-4, hand, ref)
-        energy.append(kinetic(q, dq))
-    assert np.all(np.isfinite(dq))
-    assert energy[-1] < 0.8 * energy[0]
-    assert np.all(np.diff(energy) < 1e-6 * energy[0])
+# ------------------------------------------------------------------ the hold protocol
+def test_hold_protocol_the_held_tool_stays_while_qp_reconfigures() -> None:
+    """Must hold (no model error): the surgeon holds the tool while qp moves the elbow by tens of degrees; the
+    tool moves < 1 mm and the hand does < 0.05 J.  The plant's joint friction is off here (its Coulomb torque
+    acts through the hand whatever the projector; the README gives that run's figures): this isolates the
+    dynamically consistent projector, which the old plant's extra rotor inertia broke (84 mm, 7 J)."""
+    run = simulate_scenario("hold", "qp", simulation=SimulationConfig(surgeon={"noise_rms": 0.0}, plant_friction=False))
+    s = run.summary
+    assert s["elbow_mobility_deg"] > 20.0
+    assert s["tool_displacement_max_m"] < 1e-3
+    assert s["hand_work_J"] < 0.05
 
 
-def test_bad_simulation_settings() -> None:
-    with pytest.raises(qpnso.InputError, match="substeps"):
-        SimulationConfig(substeps=0)
-    with pytest.raises(qpnso.InputError, match="armature"):
-        SimulationConfig(armature=-1.0)
+def test_the_hold_scenario_is_a_hold() -> None:
+    from qpnso.lab.scenarios import load_scenario
+
+    sc = load_scenario("hold")
+    motion = sc.motion()
+    assert motion.segments == () and motion.duration == pytest.approx(6.0)
+    assert np.ptp(motion.trajectory.position, axis=0).max() == 0.0 and sc.surgeon == {"noise_rms": 0.0}
+
+
+# ------------------------------------------------------------------ smoothness per segment
+def min_jerk_record(length: float = 0.1, duration: float = 2.0, rest: float = 1.0, dt: float = 1e-3):
+    t = np.arange(0.0, duration + rest + dt / 2, dt)
+    tau = np.clip(t / duration, 0.0, 1.0)
+    x = length * (10 * tau**3 - 15 * tau**4 + 6 * tau**5)
+    return t, np.column_stack([x, 0.5 * x, 0.0 * x])
+
+
+def test_smoothness_of_one_minimum_jerk_segment_is_sqrt_720() -> None:
+    """Must hold: S of one minimum-jerk rest-to-rest segment is √720 ≈ 26.8 (closed form: the jerk integral of
+    10τ³ − 15τ⁴ + 6τ⁵ is 720), whatever its length and duration."""
+    for length, duration in ((0.1, 2.0), (0.03, 0.7), (0.5, 5.0)):
+        t, p = min_jerk_record(length, duration, rest=0.0, dt=1e-4)  # (forward differences: O(dt/T) error)
+        assert smoothness(t, p) == pytest.approx(np.sqrt(720.0), rel=2e-3)
+    t, p = min_jerk_record()  # as a record: low-passed, ending at rest
+    s = segment_smoothness(t, p, [(0.0, 2.0)], cutoff_hz=30.0)
+    assert (
+        s["smoothness_segment_1"] == pytest.approx(np.sqrt(720.0), rel=0.02)
+        and s["smoothness"] == s["smoothness_segment_1"]
+    )
+
+
+def test_smoothness_per_segment_not_of_the_whole_path() -> None:
+    """Two equal segments: each has S ≈ √720; taken at once S grows like K² = 4 (the README's old figure)."""
+    t, p = min_jerk_record(rest=0.0)
+    both_t = np.concatenate([t, t[-1] + 1e-3 + t])
+    both_p = np.vstack([p, p[-1] + p[0] - p])  # out, then back
+    s = segment_smoothness(both_t, both_p, [(0.0, 2.0), (both_t[len(t)], both_t[-1])], cutoff_hz=30.0)
+    assert s["smoothness_segment_1"] == pytest.approx(np.sqrt(720.0), rel=0.03)
+    assert s["smoothness_segment_2"] == pytest.approx(np.sqrt(720.0), rel=0.03)
+    assert smoothness(both_t, both_p) == pytest.approx(4 * np.sqrt(720.0), rel=0.05)
+
+
+def test_every_simulation_summary_has_smoothness_per_segment() -> None:
+    run = simulate_scenario("A", "qp", duration_scale=0.3, simulation=SimulationConfig(surgeon=Subject()))
+    keys = [k for k in run.summary if k.startswith("smoothness_segment_")]
+    assert keys and run.summary["smoothness"] == pytest.approx(np.median([run.summary[k] for k in keys]))
+    assert run.summary["hand_work_J"] > 0 and run.summary["orthogonal_torque_mean_Nm"] >= 0

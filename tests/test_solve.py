@@ -140,8 +140,12 @@ def test_simulation_settings_override_the_scenario_and_strategy_wins() -> None:
 
 def test_diverging_simulation_is_an_error_not_nan(monkeypatch) -> None:
     import qpnso.lab.simulation as sim
+    from qpnso.lab.plant import Plant
 
-    monkeypatch.setattr(sim, "_integrate", lambda *a: (np.full(7, np.nan), np.full(7, np.nan)))
+    def blow_up(plant, tau, wrench=None):
+        plant.data.qvel[:] = np.nan
+
+    monkeypatch.setattr(Plant, "step", blow_up)
     with pytest.raises(sim.SimulationError, match="diverged at t = 0.000 s"):
         simulate_scenario("A", "qp", duration_scale=0.01)
 

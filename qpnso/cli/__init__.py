@@ -21,6 +21,7 @@ from typing import Callable, Sequence
 from qpnso.cli.bench import cmd_bench
 from qpnso.cli.commands import (
     cmd_compare,
+    cmd_experiment,
     cmd_info,
     cmd_intervals,
     cmd_plot,
@@ -146,6 +147,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=cmd_study)
+
+    p = sub.add_parser("experiment", help="a paper's user experiment with virtual surgeons (CSV, stats, report)")
+    p.add_argument("name", choices=["mass-friction", "elbow"])
+    p.add_argument("--subjects", type=int, default=None, help="virtual surgeons (default: the paper's, 8 or 3)")
+    p.add_argument("--orders", type=int, default=None, help="mass-friction: random target orders (default 5)")
+    p.add_argument("--reps", type=int, default=None, help="mass-friction: repetitions of each order (default 3)")
+    p.add_argument("--moves", type=int, default=None, help="mass-friction: targets per trial (default 6)")
+    p.add_argument("--trials", type=int, default=None, help="elbow: trials per subject (default 3)")
+    p.add_argument("--duration-scale", type=float, default=None, help="elbow: run only this fraction of each path")
+    p.add_argument("--no-model-error", action="store_true", help="the plant is the controller's model exactly")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None, help="processes (default: every core)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786)")
+    p.add_argument("--out", required=True, help="folder for trials.csv, stats.json, report.md, figures.png")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(handler=cmd_experiment)
 
     p = sub.add_parser("bench", help="time the cost evaluation or the control tick (median, p99)")
     p.add_argument("what", choices=["cost", "interval", "tick", "solvers", "fuzz"])

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -373,6 +373,43 @@ def clearance_cells(m: dict) -> str:
         f"{m.get('clearance_min_link', '')}, {m.get('clearance_min_obstacle', '')} | "
         f"{m.get('penetration_ticks', '')} | {m.get('obstacle_ticks', '')} |"
     )
+
+
+# ---------------------------------------------------------------- experiment
+EXPERIMENT_FLAGS = {
+    "mass-friction": ("subjects", "orders", "reps", "moves"),
+    "elbow": ("subjects", "trials", "duration_scale"),
+}
+"""The flags each experiment takes (the others are refused by name)."""
+
+
+def cmd_experiment(args: argparse.Namespace) -> int:
+    """One of the papers' user experiments, on every core or a Dask cluster; prints the report."""
+    from pathlib import Path
+
+    from qpnso.lab.experiments import run_experiment
+
+    options: dict[str, Any] = {}
+    for flag in ("subjects", "orders", "reps", "moves", "trials", "duration_scale"):
+        value = getattr(args, flag)
+        if value is None:
+            continue
+        if flag not in EXPERIMENT_FLAGS[args.name]:
+            raise argparse.ArgumentTypeError(f"--{flag.replace('_', '-')} does not apply to experiment {args.name}")
+        options[flag] = value
+    if args.no_model_error:
+        options["model_error"] = {"mass": 0.0, "friction": 0.0, "armature": 0.0, "torque_offset": 0.0}
+    run_experiment(
+        args.name,
+        Path(args.out),
+        options,
+        seed=args.seed,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=not args.quiet,
+    )
+    print((Path(args.out) / "report.md").read_text(), end="")
+    return 0
 
 
 # --------------------------------------------------------------------- study

@@ -207,7 +207,9 @@ def run_scenario(
     """
     from qpnso.lab.simulation import SimulationConfig
 
-    return simulate_scenario(name, strategy, duration_scale, progress, simulation=SimulationConfig(noise_seed=seed)).summary
+    return simulate_scenario(
+        name, strategy, duration_scale, progress, simulation=SimulationConfig(noise_seed=seed)
+    ).summary
 
 
 def simulate_scenario(
@@ -239,8 +241,9 @@ def simulate_scenario(
     if strategy is not None:
         values["strategy"] = strategy
     from qpnso.lab.simulation import SimulationConfig
+    from qpnso.lab.surgeon import Subject
 
-    sim = simulation or SimulationConfig(surgeon=sc.surgeon)
+    sim = simulation or SimulationConfig(surgeon=Subject.from_dict(sc.surgeon))
     motion = sc.motion(sim.surgeon.speed_scale).start(duration_scale)
     config = ControllerConfig.from_dict(values)
     room = config.obstacles

@@ -24,7 +24,7 @@ configuration the tick starts from; the room may hold obstacles the controller w
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import pinocchio as pin
@@ -56,13 +56,15 @@ for human movement records, Winter; fixed before any result was seen)."""
 class SimulationConfig:
     """Settings of the hands-on simulation: the plant's step (s; a divisor of the control period), the
     surgeon (a :class:`Subject` or a dict), the plant's :class:`ModelError` (or a dict), the force noise's
-    seed and the smoothness filter's cut-off (Hz)."""
+    seed and the smoothness filter's cut-off (Hz).  ``plant_friction`` False takes the joints' friction out
+    of the plant (not out of the controller's model): an experiment that isolates the null-space projector."""
 
     timestep: float = 1e-3
     surgeon: Subject = field(default_factory=Subject)
     model_error: ModelError = field(default_factory=ModelError)
     noise_seed: int = 0
     smoothness_cutoff_hz: float = SMOOTHNESS_CUTOFF_HZ
+    plant_friction: bool = True
 
     def __post_init__(self) -> None:
         """Types first (:func:`qpnso.settings.check`), then ranges."""
@@ -113,16 +115,21 @@ def simulate(
     substeps = max(1, round(dt / cfg.timestep))
     if abs(substeps * cfg.timestep - dt) > 1e-12:
         raise SimulationError(f"the plant's step {cfg.timestep} s must divide the control period {dt} s")
-    plant = Plant(
-        robot, PlantParameters.draw(robot, cfg.model_error), dt / substeps, surgeon.mass, surgeon.rotational_inertia
-    )
+    params = PlantParameters.draw(robot, cfg.model_error)
+    if not cfg.plant_friction:
+        params = replace(params, tau_coulomb=0.0 * params.tau_coulomb, damping=0.0 * params.damping)
+    plant = Plant(robot, params, dt / substeps, surgeon.mass, surgeon.rotational_inertia)
     q = robot.check_q(q0, "q0").copy()
     plant.reset(q)
     controller.reset(q)
     traj = motion.trajectory
     n_ticks = int(np.floor(motion.duration / dt + 1e-9)) + 1
     noise = ForceNoise(
-        surgeon.noise_rms, surgeon.noise_cutoff_hz, dt / substeps, n_ticks * substeps, np.random.default_rng(cfg.noise_seed)
+        surgeon.noise_rms,
+        surgeon.noise_cutoff_hz,
+        dt / substeps,
+        n_ticks * substeps,
+        np.random.default_rng(cfg.noise_seed),
     )
     inertia = np.array([surgeon.mass] * 3 + [surgeon.rotational_inertia] * 3)
     h = dt / substeps
@@ -166,7 +173,11 @@ def simulate(
     a = result.arrays
     result.summary.update(segment_smoothness(a["t"], a["tool_position"], motion.segments, cfg.smoothness_cutoff_hz))
     result.summary.update(hand_summary(a["t"], a["hand_wrench"], a["tool_twist"], a["tool_position"]))
-    result.setup.update(plant=plant.describe(), surgeon=asdict(surgeon), model_error=asdict(cfg.model_error))
+    result.setup.update(
+        plant={**plant.describe(), "friction_on": cfg.plant_friction},
+        surgeon=asdict(surgeon),
+        model_error=asdict(cfg.model_error),
+    )
     if measure:
         result.summary.update(
             clearance_summary(a["t"], a["link_clearance"], links, a["status"], Status.OBSTACLE.value),

@@ -210,7 +210,9 @@ def point_to_point_motion(
     and the rotation about the tool axis free ([M] §V-B; Flash and Hogan)."""
     from qpnso.control.trajectory import point_to_point
 
-    traj = point_to_point([start, *np.asarray(targets, dtype=float)], peak_speed=peak_speed, dwell=dwell, lift=0.0, dt=dt)
+    traj = point_to_point(
+        [start, *np.asarray(targets, dtype=float)], peak_speed=peak_speed, dwell=dwell, lift=0.0, dt=dt
+    )
     traj = with_rest(traj, dwell)
     return IntendedMotion(traj, moving_segments(traj, rest_speed=1e-4), free_tool_axis=True)
 

@@ -56,16 +56,29 @@ def run_experiment(
         job = partial(elbow_job, opts=opts)
     out = Path(out)
     t0 = time.perf_counter()
-    rows = run_jobs(RunSpec(name, opts.n_jobs, int(seed), asdict(opts)), job, out, workers=workers,
-                    scheduler=scheduler, progress=progress)
+    rows = run_jobs(
+        RunSpec(name, opts.n_jobs, int(seed), asdict(opts)),
+        job,
+        out,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
+    )
     header = f"Experiment {name}, seed {seed}, {opts.n_jobs} trials, options {asdict(opts)}"
     if name == "mass-friction":
         stats = analysis.mass_friction_stats(rows)
         report = analysis.mass_friction_report(stats, header)
         panels = [
-            ("normalised work", analysis.groups(rows, "work_normalised", stats["work_normalised"]["with_ablation"]["spread"])),
-            ("normalised orthogonal moment",
-             analysis.groups(rows, "orthogonal_torque_normalised", stats["work_normalised"]["with_ablation"]["spread"])),
+            (
+                "normalised work",
+                analysis.groups(rows, "work_normalised", stats["work_normalised"]["with_ablation"]["spread"]),
+            ),
+            (
+                "normalised orthogonal moment",
+                analysis.groups(
+                    rows, "orthogonal_torque_normalised", stats["work_normalised"]["with_ablation"]["spread"]
+                ),
+            ),
         ]
     else:
         stats = analysis.elbow_stats(rows)
@@ -77,8 +90,13 @@ def run_experiment(
             ("A: S per segment", analysis.elbow_segments(rows, "A")),
             ("B: S per segment", analysis.elbow_segments(rows, "B")),
         ]
-    stats = {"experiment": name, "seed": int(seed), "options": asdict(opts), **stats,
-             "seconds": time.perf_counter() - t0}
+    stats = {
+        "experiment": name,
+        "seed": int(seed),
+        "options": asdict(opts),
+        **stats,
+        "seconds": time.perf_counter() - t0,
+    }
     _atomic_bytes(out / "trials.csv", _csv_bytes(rows))
     _atomic_bytes(out / "stats.json", json.dumps(stats, indent=1, default=float).encode())
     _atomic_bytes(out / "report.md", report.encode())

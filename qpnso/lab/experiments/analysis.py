@@ -38,7 +38,7 @@ def normalise_per_subject(rows: list[dict], key: str, out_key: str) -> None:
             by_strategy.setdefault(r["strategy"], []).append(r)
         if not by_strategy:
             continue
-        scaled = relative_work({k: [r[key] for r in v] for k, v in by_strategy.items()})
+        scaled = relative_work({k: np.array([r[key] for r in v]) for k, v in by_strategy.items()})
         for name, trials in by_strategy.items():
             for r, value in zip(trials, scaled[name]):
                 r[out_key] = float(value)
@@ -128,8 +128,11 @@ def elbow_segments(rows: list[dict], scenario: str) -> dict[str, np.ndarray]:
     out = {}
     for name in ELBOW_STRATEGIES:
         values = [
-            v for r in rows if r["scenario"] == scenario and r["strategy"] == name
-            for k, v in r.items() if k.startswith("smoothness_segment_")
+            v
+            for r in rows
+            if r["scenario"] == scenario and r["strategy"] == name
+            for k, v in r.items()
+            if k.startswith("smoothness_segment_")
         ]
         out[name] = np.array(values, dtype=float)
     return out
@@ -177,12 +180,18 @@ def elbow_verdicts(s: dict[str, Any], rows: list[dict]) -> list[dict[str, str]]:
     kw = lambda block: block["kruskal"]["p"]  # noqa: E731
     nso_b = [r["constraint_proximity_deg"] for r in rows if r["scenario"] == "B" and r["strategy"] == "NSO"]
     nso_ok = bool(nso_b) and all(math.isfinite(v) and v >= 10.0 for v in nso_b)
-    var = {k: float(np.nanvar([r["constraint_proximity_deg"] for r in rows if r["scenario"] == "B" and r["strategy"] == k]))
-           for k in ("DP", "FOP", "NSO")}
+    var = {
+        k: float(
+            np.nanvar([r["constraint_proximity_deg"] for r in rows if r["scenario"] == "B" and r["strategy"] == k])
+        )
+        for k in ("DP", "FOP", "NSO")
+    }
     bart_dp, bart_fop = b_prox["bartlett_NSO_DP"]["p"], b_prox["bartlett_NSO_FOP"]["p"]
     smooth = {sc: {k: v["median"] for k, v in s[sc]["smoothness_per_segment"]["spread"].items()} for sc in SCENARIOS}
-    e3 = all(smooth[sc][k] < 500 for sc in SCENARIOS for k in ("FOP", "NSO")) and smooth["A"]["DP"] < 500 and (
-        smooth["B"]["DP"] > 1100
+    e3 = (
+        all(smooth[sc][k] < 500 for sc in SCENARIOS for k in ("FOP", "NSO"))
+        and smooth["A"]["DP"] < 500
+        and (smooth["B"]["DP"] > 1100)
     )
     return [
         _verdict(
@@ -194,7 +203,11 @@ def elbow_verdicts(s: dict[str, Any], rows: list[dict]) -> list[dict[str, str]]:
             "a threshold or the test's level is missed (see the figures)",
         ),
         _verdict(
-            kw(b_prox) > 0.8 and bart_dp < 0.05 and bart_fop < 0.05 and var["NSO"] < min(var["DP"], var["FOP"]) and nso_ok,
+            kw(b_prox) > 0.8
+            and bart_dp < 0.05
+            and bart_fop < 0.05
+            and var["NSO"] < min(var["DP"], var["FOP"])
+            and nso_ok,
             "E2 (scenario B): Δc medians comparable (Kruskal–Wallis p > 0.8), NSO's variance significantly smaller "
             "than DP's and FOP's (Bartlett p < 0.05), every NSO trial keeps Δc ≥ d_sg = 10°",
             f"Δc medians: DP {med(b_prox, 'DP'):.1f}°, FOP {med(b_prox, 'FOP'):.1f}°, NSO {med(b_prox, 'NSO'):.1f}° "
@@ -221,8 +234,13 @@ def spread_cell(s: dict[str, float], digits: int = 3) -> str:
 
 def mass_friction_report(s: dict[str, Any], header: str) -> str:
     """The Markdown report: spreads, the Table I layout, p-values, felt mass and friction, verdicts."""
-    lines = [header, "", "| strategy | normalised work | normalised orthogonal moment | felt mass, plant (kg) | "
-             "felt mass, model (kg) | felt friction, plant (N) | stopped trials |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        header,
+        "",
+        "| strategy | normalised work | normalised orthogonal moment | felt mass, plant (kg) | "
+        "felt mass, model (kg) | felt friction, plant (N) | stopped trials |",
+        "|---|---|---|---|---|---|---|",
+    ]
     w, t = s["work_normalised"]["with_ablation"], s["orthogonal_torque_normalised"]["with_ablation"]
     for k in MF_STRATEGIES:
         lines.append(
@@ -236,8 +254,7 @@ def mass_friction_report(s: dict[str, Any], header: str) -> str:
             "",
             f"Dunn–Šidák on the normalised {title} (1: significant at 0.01; the layout of [M] Table I); "
             f"Kruskal–Wallis H = {block['kruskal']['H']:.3g}, p = {block['kruskal']['p']:.3g}; "
-            "Kolmogorov–Smirnov normality p: "
-            + ", ".join(f"{k} {v:.2g}" for k, v in block["normality_ks_p"].items()),
+            "Kolmogorov–Smirnov normality p: " + ", ".join(f"{k} {v:.2g}" for k, v in block["normality_ks_p"].items()),
             "",
             st.significance_table(block["dunn_sidak_p"]),
             "",
@@ -267,7 +284,9 @@ def elbow_report(s: dict[str, Any], header: str) -> str:
                 f"{spread_cell(b['smoothness_per_segment']['spread'][k])} | {s['stopped'][sc][k]} |"
             )
         for key, title in (
-            ("elbow_mobility_deg", "Δ"), ("constraint_proximity_deg", "Δc"), ("smoothness_per_segment", "S")
+            ("elbow_mobility_deg", "Δ"),
+            ("constraint_proximity_deg", "Δc"),
+            ("smoothness_per_segment", "S"),
         ):
             block = b[key]
             lines.append(

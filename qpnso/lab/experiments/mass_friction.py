@@ -91,7 +91,6 @@ class MassFrictionOptions:
         return pin.SE3(pin.rpy.rpyToMatrix(*np.radians(self.rpy_deg)), np.asarray(self.center, dtype=float))
 
 
-
 @dataclass(frozen=True)
 class WorkArea:
     """The work area's postures (rad): elbow up (ns = 0) and the fixed optimum, its arm angle (rad), and the
@@ -145,13 +144,14 @@ def _work_area(opts: MassFrictionOptions) -> WorkArea:
 def controller_values(strategy: str, area: WorkArea, opts: MassFrictionOptions) -> dict[str, Any]:
     """The controller settings of ``strategy`` in this experiment."""
     impedance = {"posture_stiffness": opts.posture_stiffness, "joint_damping": area.damping}
-    return {
+    values: dict[str, dict[str, Any]] = {
         "damped": {"strategy": "damped", "joint_damping": 0.0},
         "elbow-up": {"strategy": "elbow-up", **impedance},
         "fixed": {"strategy": "fixed", "fixed_posture": tuple(area.q_opt.tolist()), **impedance},
         "active": {"strategy": "qp"},
         "qp-zero": {"strategy": "qp", "weights": {"mass": 0.0, "friction_force": 0.0}},
-    }[strategy]
+    }
+    return values[strategy]
 
 
 def mass_friction_job(index: int, seed: int, opts: MassFrictionOptions) -> dict[str, Any]:

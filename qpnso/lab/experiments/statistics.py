@@ -10,6 +10,7 @@ Every function takes ``groups``: strategy name → the trial values (1-D), in th
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Mapping
 
 import numpy as np
@@ -76,7 +77,9 @@ def dunn_sidak(groups: Mapping[str, object]) -> dict[str, dict[str, float]]:
         raise ConfigError("the Dunn–Šidák test needs scikit-posthocs: pip install 'qpnso[experiments]'") from None
     clean = _clean(groups)
     names = list(clean)
-    table = sp.posthoc_dunn([clean[n] for n in names], p_adjust="sidak")
+    with warnings.catch_warnings():  # (statsmodels' Šidák takes log1p(-p): a p of exactly 1 warns, and stays 1)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        table = sp.posthoc_dunn([clean[n] for n in names], p_adjust="sidak")
     values = np.asarray(table, dtype=float)
     return {a: {b: float(values[i, j]) for j, b in enumerate(names)} for i, a in enumerate(names)}
 

@@ -66,10 +66,12 @@ class Measures:
 
 
 class Workbench:
-    """Per-worker state: the robot, its normalised cost model and the measure functions."""
+    """Per-worker state: the robot (its rotor inertia scaled by ``armature_scale``: 0 takes it out), its
+    normalised cost model and the measure functions."""
 
-    def __init__(self, robot_name: str = "lwr4p", compile: str = "off") -> None:
-        self.robot: Robot = load_robot(robot_name)
+    def __init__(self, robot_name: str = "lwr4p", compile: str = "off", armature_scale: float = 1.0) -> None:
+        nominal = load_robot(robot_name)
+        self.robot: Robot = load_robot(robot_name, armature=nominal.model.armature * armature_scale)
         self.cost = CostModel(self.robot, compile=compile)
         self._fn = curve_function(self.cost)
         self._one = FastFunction(self._fn, compile)
@@ -98,14 +100,14 @@ class Workbench:
         return self.robot.friction.tau_max
 
 
-_BENCHES: dict[tuple[str, str], Workbench] = {}
+_BENCHES: dict[tuple[str, str, float], Workbench] = {}
 
 
-def workbench(robot: str = "lwr4p", compile: str = "off") -> Workbench:
+def workbench(robot: str = "lwr4p", compile: str = "off", armature_scale: float = 1.0) -> Workbench:
     """The worker's :class:`Workbench` (built once per process)."""
-    key = (robot, compile)
+    key = (robot, compile, armature_scale)
     if key not in _BENCHES:
-        _BENCHES[key] = Workbench(robot, compile)
+        _BENCHES[key] = Workbench(robot, compile, armature_scale)
     return _BENCHES[key]
 
 

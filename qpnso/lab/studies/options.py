@@ -18,7 +18,8 @@ class StudyOptions:
     ``mass_shares``: weights ``w`` of the trade-off (mass share, friction 1 − w);
     ``trials``, ``friction_sd``: uncertainty trials per pose and relative sd of
     ``tau_max``; ``duration_scale``: fraction of the scenario paths to run;
-    ``compile``: CasADi evaluation mode of the workers (:mod:`qpnso.model.codegen`).
+    ``compile``: CasADi evaluation mode of the workers (:mod:`qpnso.model.codegen`);
+    ``armature_scale``: the model's rotor inertias (``models/armature.json``) times this (0: none).
     """
 
     robot: str = "lwr4p"
@@ -29,6 +30,7 @@ class StudyOptions:
     friction_sd: float = 0.10
     duration_scale: float = 1.0
     compile: str = "off"
+    armature_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0 < self.grid_step_deg <= 30:
@@ -39,6 +41,8 @@ class StudyOptions:
             raise ConfigError(f"mass_shares must be weights in [0, 1], got {self.mass_shares}")
         if self.trials < 1 or not 0 <= self.friction_sd < 1:
             raise ConfigError(f"need trials >= 1 and 0 <= friction_sd < 1, got {self.trials}, {self.friction_sd}")
+        if not self.armature_scale >= 0:
+            raise ConfigError(f"armature_scale must be >= 0, got {self.armature_scale}")
         if not 0 < self.duration_scale <= 1:
             raise ConfigError(f"duration_scale must be in (0, 1], got {self.duration_scale}")
 

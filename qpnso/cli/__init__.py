@@ -157,6 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trials", type=int, default=None, help="elbow: trials per subject (default 3)")
     p.add_argument("--duration-scale", type=float, default=None, help="elbow: run only this fraction of each path")
     p.add_argument("--no-model-error", action="store_true", help="the plant is the controller's model exactly")
+    p.add_argument(
+        "--armature-scale",
+        type=float,
+        default=None,
+        help="the robot's rotor inertias times this, controller and plant alike (0: none; default 1)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None, help="processes (default: every core)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786)")

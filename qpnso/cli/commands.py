@@ -377,8 +377,8 @@ def clearance_cells(m: dict) -> str:
 
 # ---------------------------------------------------------------- experiment
 EXPERIMENT_FLAGS = {
-    "mass-friction": ("subjects", "orders", "reps", "moves"),
-    "elbow": ("subjects", "trials", "duration_scale"),
+    "mass-friction": ("subjects", "orders", "reps", "moves", "armature_scale"),
+    "elbow": ("subjects", "trials", "duration_scale", "armature_scale"),
 }
 """The flags each experiment takes (the others are refused by name)."""
 
@@ -390,7 +390,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     from qpnso.lab.experiments import run_experiment
 
     options: dict[str, Any] = {}
-    for flag in ("subjects", "orders", "reps", "moves", "trials", "duration_scale"):
+    for flag in ("subjects", "orders", "reps", "moves", "trials", "duration_scale", "armature_scale"):
         value = getattr(args, flag)
         if value is None:
             continue

@@ -220,6 +220,7 @@ def simulate_scenario(
     settings: dict | None = None,
     ignore_obstacles: bool = False,
     simulation: "SimulationConfig | None" = None,
+    robot: Robot | None = None,
 ) -> "RunResult":
     """Simulate scenario ``name``: the per-tick arrays and summary (:class:`qpnso.control.offline.RunResult`).
 
@@ -229,14 +230,17 @@ def simulate_scenario(
     controller does not get them (it runs as if the room were empty).  ``simulation``: the plant, surgeon and
     model error (default :class:`qpnso.lab.simulation.SimulationConfig` with the scenario's ``[surgeon]``
     table, if any); the surgeon intends
-    :meth:`Scenario.motion` at its speed scale.
+    :meth:`Scenario.motion` at its speed scale.  ``robot``: the scenario's robot with other parameters (e.g.
+    another rotor inertia: it must be the scenario's robot, by name).
     """
     from qpnso.control.config import ControllerConfig
     from qpnso.control.controller import Controller
     from qpnso.lab.simulation import simulate
 
     sc = load_scenario(name)
-    robot = load_robot(sc.robot)
+    if robot is not None and robot.name != sc.robot:
+        raise ConfigError(f"scenario {sc.name} is for robot {sc.robot!r}, got {robot.name!r}")
+    robot = robot or load_robot(sc.robot)
     values = {**sc.controller, **({"obstacles": sc.obstacles} if sc.obstacles else {}), **(settings or {})}
     if strategy is not None:
         values["strategy"] = strategy

@@ -171,6 +171,7 @@ def simulate(
             progress(k + 1, n_ticks)
     result = recorder.result()
     a = result.arrays
+    result.summary.pop("smoothness", None)  # (the whole record's S grows like K² over K segments: per segment only)
     result.summary.update(segment_smoothness(a["t"], a["tool_position"], motion.segments, cfg.smoothness_cutoff_hz))
     result.summary.update(hand_summary(a["t"], a["hand_wrench"], a["tool_twist"], a["tool_position"]))
     result.setup.update(

@@ -23,7 +23,7 @@ from typing import Any
 
 from qpnso.errors import ConfigError
 from qpnso.lab.experiments.elbow import ElbowOptions, elbow_job
-from qpnso.lab.experiments.mass_friction import MassFrictionOptions, mass_friction_job
+from qpnso.lab.experiments.mass_friction import MassFrictionOptions, mass_friction_job, work_area_summary
 from qpnso.lab.parallel import RunSpec, run_jobs
 
 EXPERIMENTS = ("mass-friction", "elbow")
@@ -65,8 +65,8 @@ def run_experiment(
         progress=progress,
     )
     header = f"Experiment {name}, seed {seed}, {opts.n_jobs} trials, options {asdict(opts)}"
-    if name == "mass-friction":
-        stats = analysis.mass_friction_stats(rows)
+    if isinstance(opts, MassFrictionOptions):
+        stats = analysis.mass_friction_stats(rows, work_area_summary(opts))
         report = analysis.mass_friction_report(stats, header)
         panels = [
             (

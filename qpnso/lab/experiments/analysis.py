@@ -61,11 +61,12 @@ def _compare(g: dict[str, np.ndarray]) -> dict[str, Any]:
     }
 
 
-def mass_friction_stats(rows: list[dict]) -> dict[str, Any]:
-    """Statistics and verdicts of the mass/friction experiment (its four strategies, then with the ablation)."""
-    normalise_per_subject(rows, "user_work_per_metre_N", "work_normalised")
+def mass_friction_stats(rows: list[dict], area: dict[str, float] | None = None) -> dict[str, Any]:
+    """Statistics and verdicts of the mass/friction experiment (its four strategies, then with the ablation);
+    ``area``: the work area's postures and what they feel (:func:`~.mass_friction.work_area_summary`)."""
+    normalise_per_subject(rows, "work_per_metre", "work_normalised")
     normalise_per_subject(rows, "orthogonal_torque_mean_Nm", "orthogonal_torque_normalised")
-    out: dict[str, Any] = {"trials": len(rows), "stopped": _stopped(rows, MF_STRATEGIES)}
+    out: dict[str, Any] = {"trials": len(rows), "stopped": _stopped(rows, MF_STRATEGIES), "work_area": area or {}}
     for key in ("work_normalised", "orthogonal_torque_normalised"):
         out[key] = _compare(groups(rows, key, PAPER_STRATEGIES))
         out[key]["with_ablation"] = _compare(groups(rows, key, MF_STRATEGIES))
@@ -85,6 +86,13 @@ def mass_friction_verdicts(s: dict[str, Any]) -> list[dict[str, str]]:
     """The paper's three claims on its Table I and Fig. 10, judged at its 0.01 level, and the ablation."""
     work, torque = s["work_normalised"], s["orthogonal_torque_normalised"]
     med = lambda block: ", ".join(f"{k} {v['median']:.3f}" for k, v in block["spread"].items())  # noqa: E731
+    area = s.get("work_area") or {}
+    premise = (
+        f"; felt mass (model) at the fixed posture {area['mass_fixed_kg']:.2f} kg, elbow up "
+        f"{area['mass_elbow_up_kg']:.2f} kg"
+        if area
+        else ""
+    )
     p_fa = work["dunn_sidak_p"]["fixed"]["active"]
     abl = work["with_ablation"]
     p_abl = abl["dunn_sidak_p"]["active"]["qp-zero"]
@@ -93,7 +101,7 @@ def mass_friction_verdicts(s: dict[str, Any]) -> list[dict[str, str]]:
             _lower_and_significant(work, ("fixed", "active"), ("damped", "elbow-up"), 0.01),
             "M1: fixed and active need significantly less work than damped and elbow-up "
             "(Kruskal–Wallis p < 0.01, Dunn–Šidák at 0.01)",
-            f"normalised work medians: {med(work)}; Kruskal–Wallis p = {work['kruskal']['p']:.3g}",
+            f"normalised work medians: {med(work)}; Kruskal–Wallis p = {work['kruskal']['p']:.3g}{premise}",
             "see the Dunn–Šidák table: at least one of the four pairs is not significant or not lower",
         ),
         _verdict(
@@ -233,9 +241,12 @@ def spread_cell(s: dict[str, float], digits: int = 3) -> str:
 
 
 def mass_friction_report(s: dict[str, Any], header: str) -> str:
-    """The Markdown report: spreads, the Table I layout, p-values, felt mass and friction, verdicts."""
+    """The Markdown report: the work area's premise, spreads, the Table I layout, p-values, felt mass and
+    friction, verdicts."""
     lines = [
         header,
+        "",
+        work_area_line(s.get("work_area") or {}),
         "",
         "| strategy | normalised work | normalised orthogonal moment | felt mass, plant (kg) | "
         "felt mass, model (kg) | felt friction, plant (N) | stopped trials |",
@@ -263,6 +274,18 @@ def mass_friction_report(s: dict[str, Any], header: str) -> str:
             st.pvalue_table(block["with_ablation"]["dunn_sidak_p"]),
         ]
     return "\n".join(lines + ["", verdict_lines(s["verdicts"])]) + "\n"
+
+
+def work_area_line(area: dict[str, float]) -> str:
+    """What the postures feel in the work area (the experiment's premise), one line."""
+    if not area:
+        return ""
+    return (
+        f"Work area (controller's model): the fixed posture is at arm angle {area['fixed_arm_angle_deg']:.1f}° "
+        f"(elbow up: 0°); felt mass {area['mass_fixed_kg']:.2f} kg there against {area['mass_elbow_up_kg']:.2f} kg "
+        f"elbow up, friction force {area['friction_fixed_N']:.1f} N against {area['friction_elbow_up_N']:.1f} N; "
+        f"fixed and elbow-up held by 100 N·m/rad with {area['nullspace_damping_Nms_per_rad']:.3g} N·m·s/rad."
+    )
 
 
 def elbow_report(s: dict[str, Any], header: str) -> str:

@@ -23,7 +23,15 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from qpnso.errors import ConfigError
-from qpnso.lab.experiments.trials import model_error, noise_seed, run_or_error, subject, subject_record, trial_row
+from qpnso.lab.experiments.trials import (
+    model_error,
+    noise_seed,
+    run_or_error,
+    scaled_robot,
+    subject,
+    subject_record,
+    trial_row,
+)
 
 SCENARIOS = ("A", "B")
 STRATEGIES = {"DP": "damped", "FOP": "fixed", "NSO": "rom", "qp": "qp"}
@@ -38,8 +46,11 @@ class ElbowOptions:
     trials: int = 3
     duration_scale: float = 1.0
     model_error: dict[str, float] = field(default_factory=dict)  # empty: EXPERIMENT_MODEL_ERROR
+    armature_scale: float = 1.0  # the model's rotor inertias times this, in the controller and the plant alike
 
     def __post_init__(self) -> None:
+        if not self.armature_scale >= 0:
+            raise ConfigError(f"armature_scale must be >= 0, got {self.armature_scale}")
         if self.subjects < 1 or self.trials < 1:
             raise ConfigError(f"subjects and trials must be >= 1, got {self.subjects}, {self.trials}")
         if not 0 < self.duration_scale <= 1:
@@ -66,7 +77,13 @@ def elbow_job(index: int, seed: int, opts: ElbowOptions) -> dict[str, Any]:
         surgeon=person, model_error=model_error(seed, opts.model_error or None), noise_seed=noise_seed(seed, index)
     )
     summary, error = run_or_error(
-        lambda: simulate_scenario(scenario, STRATEGIES[name], opts.duration_scale, simulation=sim)
+        lambda: simulate_scenario(
+            scenario,
+            STRATEGIES[name],
+            opts.duration_scale,
+            simulation=sim,
+            robot=scaled_robot("lwr4p", opts.armature_scale),
+        )
     )
     margin = float(load_scenario(scenario).controller.get("safety_margin_deg", 10.0))
     return {

@@ -41,6 +41,7 @@ from qpnso.lab.experiments.trials import (
     model_error,
     noise_seed,
     run_or_error,
+    scaled_robot,
     subject,
     subject_record,
     trial_row,
@@ -69,8 +70,11 @@ class MassFrictionOptions:
     posture_stiffness: float = 100.0  # N·m/rad
     damping_ratio: float = 0.1
     model_error: dict[str, float] = field(default_factory=dict)  # empty: EXPERIMENT_MODEL_ERROR
+    armature_scale: float = 1.0  # the model's rotor inertias times this, in the controller and the plant alike
 
     def __post_init__(self) -> None:
+        if not self.armature_scale >= 0:
+            raise ConfigError(f"armature_scale must be >= 0, got {self.armature_scale}")
         for name in ("subjects", "orders", "reps"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -122,9 +126,8 @@ def _work_area(opts: MassFrictionOptions) -> WorkArea:
     from qpnso.control.controller import Controller
     from qpnso.elbow.intervals import continuity_interval
     from qpnso.elbow.srs import Branch, ik
-    from qpnso.model.robot import load_robot
 
-    robot = load_robot(opts.robot)
+    robot = scaled_robot(opts.robot, opts.armature_scale)
     pose, b = opts.pose(), Branch(*ELBOW_UP_BRANCH)
     q_up = ik(robot, pose, 0.0, b)
     iv = continuity_interval(robot, q_up)
@@ -139,6 +142,24 @@ def _work_area(opts: MassFrictionOptions) -> WorkArea:
     inertia = float(u @ robot.mass_matrix(q_opt) @ u)
     damping = 2.0 * opts.damping_ratio * math.sqrt(opts.posture_stiffness * inertia)
     return WorkArea(q_up, q_opt, ns, damping)
+
+
+def work_area_summary(opts: MassFrictionOptions) -> dict[str, float]:
+    """The experiment's premise, measured on the controller's model: the fixed posture's arm angle (deg) and
+    the felt mass (kg) and friction force (N) at the elbow-up and at the fixed posture."""
+    from qpnso.control.config import ControllerConfig
+    from qpnso.control.controller import Controller
+
+    area = work_area(opts)
+    cost = Controller(scaled_robot(opts.robot, opts.armature_scale), ControllerConfig()).cost
+    return {
+        "fixed_arm_angle_deg": math.degrees(area.ns_opt),
+        "mass_elbow_up_kg": cost.principal_mass(area.q_up),
+        "mass_fixed_kg": cost.principal_mass(area.q_opt),
+        "friction_elbow_up_N": cost.friction_force_magnitude(area.q_up),
+        "friction_fixed_N": cost.friction_force_magnitude(area.q_opt),
+        "nullspace_damping_Nms_per_rad": area.damping,
+    }
 
 
 def controller_values(strategy: str, area: WorkArea, opts: MassFrictionOptions) -> dict[str, Any]:
@@ -160,7 +181,6 @@ def mass_friction_job(index: int, seed: int, opts: MassFrictionOptions) -> dict[
     from qpnso.control.controller import Controller
     from qpnso.lab.simulation import SimulationConfig, simulate
     from qpnso.lab.surgeon import dome_targets, point_to_point_motion
-    from qpnso.model.robot import load_robot
 
     s, order, rep, strategy = opts.job(index)
     area = work_area(opts)
@@ -169,7 +189,7 @@ def mass_friction_job(index: int, seed: int, opts: MassFrictionOptions) -> dict[
     targets = dome_targets(pose.translation, opts.dome_radius, opts.moves)
     perm = job_rng(seed, ORDER_STREAM + order).permutation(opts.moves)
     motion = point_to_point_motion(pose, targets[perm], opts.peak_speed * person.speed_scale, opts.dwell)
-    robot = load_robot(opts.robot)
+    robot = scaled_robot(opts.robot, opts.armature_scale)
     q0 = area.q_up if strategy in ("damped", "elbow-up") else area.q_opt
     sim = SimulationConfig(
         surgeon=person, model_error=model_error(seed, opts.model_error or None), noise_seed=noise_seed(seed, index)

@@ -44,11 +44,22 @@ TRIAL_KEYS = (
     "duration_s",
 )
 """The run summary's keys a trial row keeps (with the per-segment smoothness keys)."""
+COLUMNS = {"user_work_per_metre_N": "work_per_metre"}
+"""Summary keys a trial row names otherwise (``work_per_metre``: N = J/m, [M 24] before normalisation)."""
 
 
 def model_error(seed: int, values: dict[str, float] | None = None) -> ModelError:
     """The experiment's plant draw: :data:`EXPERIMENT_MODEL_ERROR` (or ``values``), seeded by ``seed``."""
     return ModelError(**(EXPERIMENT_MODEL_ERROR if values is None else values), seed=int(seed))
+
+
+def scaled_robot(name: str, armature_scale: float = 1.0):
+    """Robot ``name`` with its rotor inertias (``models/armature.json``) times ``armature_scale``: the same
+    model for the controller and the plant (0: a robot without them)."""
+    from qpnso.model.robot import load_robot
+
+    robot = load_robot(name)
+    return robot if armature_scale == 1.0 else load_robot(name, armature=robot.model.armature * armature_scale)
 
 
 def subject(seed: int, index: int) -> Subject:
@@ -65,7 +76,7 @@ def trial_row(summary: dict[str, Any] | None, error: str = "") -> dict[str, Any]
     """A trial's row from its run summary (:data:`TRIAL_KEYS`, the per-segment smoothness), NaN where a
     value is missing; ``error`` says why a run stopped (its values are then NaN)."""
     s = summary or {}
-    row: dict[str, Any] = {k: float(s.get(k, math.nan)) for k in TRIAL_KEYS}
+    row: dict[str, Any] = {COLUMNS.get(k, k): float(s.get(k, math.nan)) for k in TRIAL_KEYS}
     row.update({k: float(v) for k, v in s.items() if k.startswith("smoothness_segment_")})
     row["error"] = error
     return row

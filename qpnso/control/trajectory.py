@@ -400,6 +400,23 @@ def parabola(sigma: np.ndarray, half_width: float) -> np.ndarray:
     return half_width * (u * e1 + u**2 * e2)
 
 
+def guidance_curves(c: np.ndarray, half_width: float) -> list[Callable[[np.ndarray], np.ndarray]]:
+    """The four curves ``g(σ)`` (σ ∈ [0, 1] → (M, 3) m, world) of the guidance path around the point ``c``:
+    lemniscates in the x-y, x-z and y-z planes, then the tilted parabola; each starts and ends at ``c``."""
+
+    def in_plane(axes):
+        def curve(s):
+            out = np.tile(c, (len(np.atleast_1d(s)), 1))
+            out[:, list(axes)] += lemniscate(np.atleast_1d(s), half_width)
+            return out
+
+        return curve
+
+    curves = [in_plane(LEMNISCATE_PLANES[k]) for k in ("xy", "xz", "yz")]
+    curves.append(lambda s: c + parabola(np.atleast_1d(s), half_width))
+    return curves
+
+
 def guidance_path(center, size: float = 0.10, speed: float = 0.05, orientation=None, dt: float = 0.01) -> Trajectory:
     """The elbow paper's guidance path ([E] Fig. 4), constant tool orientation.
 
@@ -415,18 +432,7 @@ def guidance_path(center, size: float = 0.10, speed: float = 0.05, orientation=N
     """
     _check_positive(size=size, speed=speed, dt=dt)
     c, rot = _pose_of(center, orientation)
-    a = size / 2
-
-    def in_plane(axes):
-        def curve(s):
-            out = np.tile(c, (len(np.atleast_1d(s)), 1))
-            out[:, list(axes)] += lemniscate(np.atleast_1d(s), a)
-            return out
-
-        return curve
-
-    curves = [in_plane(LEMNISCATE_PLANES[k]) for k in ("xy", "xz", "yz")]
-    curves.append(lambda s: c + parabola(np.atleast_1d(s), a))
+    curves = guidance_curves(c, size / 2)
     return _constant_orientation(_concatenate([_segment(g, dt, speed=speed) for g in curves]), rot, dt)
 
 

@@ -172,28 +172,11 @@ def guidance_motion(center: pin.SE3, size: float, speed: float, pause: float = 0
     each re-timed by the two-thirds power law (:func:`power_law_curve`) inside a minimum-jerk envelope of
     peak speed ``speed`` m/s, with ``pause`` s at rest after each, so that every segment's record ends at
     rest."""
-    from qpnso.control.trajectory import (
-        LEMNISCATE_PLANES,
-        _concatenate,
-        _constant_orientation,
-        _segment,
-        lemniscate,
-        parabola,
-    )
+    from qpnso.control.trajectory import _concatenate, _constant_orientation, _segment, guidance_curves
 
     c, rot = center.translation.copy(), center.rotation.copy()
     a = size / 2
-
-    def in_plane(axes):
-        def curve(s):
-            out = np.tile(c, (len(np.atleast_1d(s)), 1))
-            out[:, list(axes)] += lemniscate(np.atleast_1d(s), a)
-            return out
-
-        return curve
-
-    curves = [in_plane(LEMNISCATE_PLANES[k]) for k in ("xy", "xz", "yz")]
-    curves.append(lambda s: c + parabola(np.atleast_1d(s), a))
+    curves = guidance_curves(c, a)
     parts = []
     rest = np.tile(c, (max(1, round(pause / dt)) + 1, 1))
     for g in curves:

@@ -169,7 +169,8 @@ def test_fixed_posture_is_the_cost_optimum_inside_the_interval() -> None:
     assert iv.lo < area.ns_opt < iv.hi and area.damping > 0
 
 
-def test_mass_friction_experiment_end_to_end(tmp_path) -> None:
+def test_mass_friction_experiment_end_to_end(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("QPNSO_COMPILE", "off")  # (qp-zero's weights are new C code: no background compile in the suite)
     out = tmp_path / "mf"
     size = {"subjects": 1, "orders": 1, "reps": 1, "moves": 2}
     stats_ = run_experiment("mass-friction", out, size, workers=1)

@@ -110,82 +110,102 @@ def simulate(
     robot = controller.robot
     room = controller.obstacles if room is None else as_obstacles(room)
     measure, links = clearance_meter(robot, room)
-    surgeon = cfg.surgeon
     dt = controller.config.dt
-    substeps = max(1, round(dt / cfg.timestep))
-    if abs(substeps * cfg.timestep - dt) > 1e-12:
-        raise SimulationError(f"the plant's step {cfg.timestep} s must divide the control period {dt} s")
-    params = PlantParameters.draw(robot, cfg.model_error)
-    if not cfg.plant_friction:
-        params = replace(params, tau_coulomb=0.0 * params.tau_coulomb, damping=0.0 * params.damping)
-    plant = Plant(robot, params, dt / substeps, surgeon.mass, surgeon.rotational_inertia)
+    n_ticks = int(np.floor(motion.duration / dt + 1e-9)) + 1
     q = robot.check_q(q0, "q0").copy()
+    plant = make_plant(robot, cfg, dt)
     plant.reset(q)
     controller.reset(q)
-    traj = motion.trajectory
-    n_ticks = int(np.floor(motion.duration / dt + 1e-9)) + 1
-    noise = ForceNoise(
-        surgeon.noise_rms,
-        surgeon.noise_cutoff_hz,
-        dt / substeps,
-        n_ticks * substeps,
-        np.random.default_rng(cfg.noise_seed),
-    )
-    inertia = np.array([surgeon.mass] * 3 + [surgeon.rotational_inertia] * 3)
-    h = dt / substeps
-    intended = traj.samples(float(traj.t[0]) + h * np.arange(n_ticks * substeps))  # (every plant step's, at once)
+    hand = HandOnTool(plant, cfg.surgeon, motion, n_ticks, dt, cfg.noise_seed)
     recorder = Recorder(controller, feel_every=10, felt=lambda qs: plant.felt(qs, controller.cost.potential_speed))
-    tool = plant.tool_state()
+    t0 = float(motion.trajectory.t[0])
     for k in range(n_ticks):
-        t = float(traj.t[0]) + k * dt
-        q, dq = plant.q, plant.dq
+        q, dq, tool = plant.q, plant.dq, hand.tool
         twist = np.concatenate([tool[2], tool[3]])
         pose = pin.SE3(tool[1], tool[0])
         cmd = controller.step(q, dq, tool_twist=twist, tool_pose=pose)
         measured = {"link_clearance": measure(q), "controller_clearance": np.asarray(cmd.clearance)} if measure else {}
-        applied = None
-        for i in range(substeps):
-            if i:
-                tool = plant.tool_state()
-            j = k * substeps + i
-            wrench = surgeon.wrench(tuple(x[j] for x in intended), tool, motion.free_tool_axis)
-            wrench[:3] += noise(j)
-            applied = wrench if applied is None else applied
-            plant.step(cmd.tau, wrench)
-        tool = plant.tool_state()
-        if not (np.all(np.isfinite(plant.data.qpos)) and np.all(np.isfinite(plant.data.qvel))):
-            raise SimulationError(f"the simulation diverged at t = {t:.3f} s")
-        on_tool = applied - inertia * (np.concatenate([tool[2], tool[3]]) - twist) / dt
-        recorder.add(
-            t,
-            q,
-            cmd,
-            pose,
-            (intended[1][k * substeps], intended[0][k * substeps]),
-            dq_measured=dq,
-            hand_wrench=on_tool,
-            tool_twist=twist,
-            **measured,
-        )
+        on_tool = hand.tick(k, cmd.tau)
+        extra = {"dq_measured": dq, "hand_wrench": on_tool, "tool_twist": twist, **measured}
+        recorder.add(t0 + k * dt, q, cmd, pose, hand.intended_pose(k), **extra)
         if progress is not None:
             progress(k + 1, n_ticks)
     result = recorder.result()
-    a = result.arrays
-    result.summary.pop("smoothness", None)  # (the whole record's S grows like K² over K segments: per segment only)
-    result.summary.update(segment_smoothness(a["t"], a["tool_position"], motion.segments, cfg.smoothness_cutoff_hz))
-    result.summary.update(hand_summary(a["t"], a["hand_wrench"], a["tool_twist"], a["tool_position"]))
-    result.setup.update(
-        plant={**plant.describe(), "friction_on": cfg.plant_friction},
-        surgeon=asdict(surgeon),
-        model_error=asdict(cfg.model_error),
-    )
+    summarise(result, motion, cfg)
+    result.setup["plant"] = {**plant.describe(), "friction_on": cfg.plant_friction}
     if measure:
+        a = result.arrays
         result.summary.update(
             clearance_summary(a["t"], a["link_clearance"], links, a["status"], Status.OBSTACLE.value),
             room_obstacles=len(room),
             controller_obstacles=len(controller.obstacles),
         )
     return result
+
+
+def make_plant(robot: Robot, cfg: SimulationConfig, dt: float) -> Plant:
+    """The plant of a run: the robot drawn with ``cfg.model_error`` (its joint friction removed when
+    ``cfg.plant_friction`` is False), the surgeon's hand at the tool, ``cfg.timestep`` a divisor of ``dt``."""
+    substeps = max(1, round(dt / cfg.timestep))
+    if abs(substeps * cfg.timestep - dt) > 1e-12:
+        raise SimulationError(f"the plant's step {cfg.timestep} s must divide the control period {dt} s")
+    params = PlantParameters.draw(robot, cfg.model_error)
+    if not cfg.plant_friction:
+        params = replace(params, tau_coulomb=0.0 * params.tau_coulomb, damping=0.0 * params.damping)
+    return Plant(robot, params, dt / substeps, cfg.surgeon.mass, cfg.surgeon.rotational_inertia)
+
+
+class HandOnTool:
+    """The surgeon's hand on the plant's tool: every plant step, the arm impedance towards the intended
+    motion (sampled once for the whole run) and the force noise act on the hand body; the controller's
+    torque is held over the tick.  The plant must be at its start (:meth:`Plant.reset`)."""
+
+    def __init__(
+        self, plant: Plant, surgeon: Subject, motion: IntendedMotion, n_ticks: int, dt: float, noise_seed: int
+    ) -> None:
+        self.plant, self.surgeon, self.free_axis = plant, surgeon, motion.free_tool_axis
+        self.dt = dt
+        self.substeps = max(1, round(dt / plant.model.opt.timestep))
+        h = dt / self.substeps
+        n = n_ticks * self.substeps
+        self.intended = motion.trajectory.samples(float(motion.trajectory.t[0]) + h * np.arange(n))
+        self.noise = ForceNoise(surgeon.noise_rms, surgeon.noise_cutoff_hz, h, n, np.random.default_rng(noise_seed))
+        self.inertia = np.array([surgeon.mass] * 3 + [surgeon.rotational_inertia] * 3)
+        self.tool = plant.tool_state()
+
+    def intended_pose(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(rotation, position) the surgeon intends at the start of tick ``k`` (world frame)."""
+        j = k * self.substeps
+        return self.intended[1][j], self.intended[0][j]
+
+    def tick(self, k: int, tau: np.ndarray) -> np.ndarray:
+        """Advance the plant over tick ``k`` with the torque ``tau`` (N·m) held; returns the wrench the hand
+        exerted on the tool at the tick's start (N, N·m; world frame): the impedance wrench and noise minus the
+        hand's inertia times the tool's acceleration over the tick, what a handle's force sensor reads."""
+        start = np.concatenate([self.tool[2], self.tool[3]])
+        applied = None
+        for i in range(self.substeps):
+            j = k * self.substeps + i
+            wrench = self.surgeon.wrench(tuple(x[j] for x in self.intended), self.tool, self.free_axis)
+            wrench[:3] += self.noise(j)
+            applied = wrench if applied is None else applied
+            self.plant.step(tau, wrench)
+            self.tool = self.plant.tool_state()
+        if not (np.all(np.isfinite(self.plant.data.qpos)) and np.all(np.isfinite(self.plant.data.qvel))):
+            raise SimulationError(f"the simulation diverged at t = {k * self.dt:.3f} s")
+        assert applied is not None  # (one step at least)
+        return applied - self.inertia * (np.concatenate([self.tool[2], self.tool[3]]) - start) / self.dt
+
+
+def summarise(result: RunResult, motion: IntendedMotion, cfg: SimulationConfig) -> None:
+    """A simulation's summary beyond :class:`~qpnso.control.offline.Recorder`'s: S per segment (the whole
+    record's S grows like K² over K segments: removed), :func:`qpnso.lab.metrics.hand_summary`, and the
+    run's set-up (plant, surgeon, model error) in ``result.setup``."""
+    a = result.arrays
+    result.summary.pop("smoothness", None)
+    result.summary.update(segment_smoothness(a["t"], a["tool_position"], motion.segments, cfg.smoothness_cutoff_hz))
+    result.summary.update(hand_summary(a["t"], a["hand_wrench"], a["tool_twist"], a["tool_position"]))
+    result.setup.update(surgeon=asdict(cfg.surgeon), model_error=asdict(cfg.model_error))
 
 
 def clearance_meter(

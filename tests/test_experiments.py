@@ -172,7 +172,7 @@ def test_fixed_posture_is_the_cost_optimum_inside_the_interval() -> None:
 def test_mass_friction_experiment_end_to_end(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("QPNSO_COMPILE", "off")  # (qp-zero's weights are new C code: no background compile in the suite)
     out = tmp_path / "mf"
-    size = {"subjects": 1, "orders": 1, "reps": 1, "moves": 2}
+    size = {"subjects": 1, "orders": 1, "reps": 1, "moves": 2, "dwell": 0.2, "peak_speed": 0.15}
     stats_ = run_experiment("mass-friction", out, size, workers=1)
     with open(out / "trials.csv") as f:
         rows = list(csv.DictReader(f))
@@ -194,7 +194,7 @@ def test_mass_friction_experiment_end_to_end(tmp_path, monkeypatch) -> None:
 
 def test_elbow_experiment_from_the_command_line(tmp_path, capsys) -> None:
     out = tmp_path / "el"
-    argv = ["experiment", "elbow", "--subjects", "1", "--trials", "1", "--duration-scale", "0.04", "--workers", "1"]
+    argv = ["experiment", "elbow", "--subjects", "1", "--trials", "1", "--duration-scale", "0.025", "--workers", "1"]
     assert main([*argv, "--out", str(out), "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "Scenario A:" in text and "Scenario B:" in text and "E1 (scenario A)" in text

@@ -104,7 +104,8 @@ def test_hold_protocol_the_held_tool_stays_while_qp_reconfigures() -> None:
     tool moves < 1 mm and the hand does < 0.05 J.  The plant's joint friction is off here (its Coulomb torque
     acts through the hand whatever the projector; the README gives that run's figures): this isolates the
     dynamically consistent projector, which the old plant's extra rotor inertia broke (84 mm, 7 J)."""
-    run = simulate_scenario("hold", "qp", simulation=SimulationConfig(surgeon={"noise_rms": 0.0}, plant_friction=False))
+    quiet = SimulationConfig(surgeon={"noise_rms": 0.0}, plant_friction=False)
+    run = simulate_scenario("hold", "qp", duration_scale=0.5, simulation=quiet)  # (3 s of the 6: 23° of elbow)
     s = run.summary
     assert s["elbow_mobility_deg"] > 20.0 and "smoothness" not in s  # (a hold has no segment)
     assert s["tool_displacement_max_m"] < 1e-3
@@ -154,7 +155,7 @@ def test_smoothness_per_segment_not_of_the_whole_path() -> None:
 
 
 def test_every_simulation_summary_has_smoothness_per_segment() -> None:
-    run = simulate_scenario("A", "qp", duration_scale=0.1, simulation=SimulationConfig(surgeon=Subject()))
+    run = simulate_scenario("A", "qp", duration_scale=0.05, simulation=SimulationConfig(surgeon=Subject()))
     keys = [k for k in run.summary if k.startswith("smoothness_segment_")]
     assert keys and run.summary["smoothness"] == pytest.approx(np.median([run.summary[k] for k in keys]))
     assert run.summary["hand_work_J"] > 0 and run.summary["orthogonal_torque_mean_Nm"] >= 0

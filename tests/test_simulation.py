@@ -9,7 +9,7 @@ import pytest
 
 import qpnso
 from qpnso.lab.metrics import segment_smoothness, smoothness
-from qpnso.lab.plant import ModelError, Plant, PlantParameters
+from qpnso.lab.plant import ModelMismatch, Plant, PlantParameters
 from qpnso.lab.scenarios import simulate_scenario
 from qpnso.lab.simulation import SimulationConfig, simulate
 from qpnso.lab.surgeon import Subject, hold_motion
@@ -34,7 +34,7 @@ def test_mujoco_and_pinocchio_agree_on_mass_gravity_and_jacobian(name) -> None:
 
 def test_a_drawn_plant_is_the_same_robot_in_both_engines(lwr) -> None:
     """The model error scales MuJoCo's bodies and Pinocchio's inertias alike (the felt checks rely on it)."""
-    params = PlantParameters.draw(lwr, ModelError(mass=0.2, friction=0.1, armature=0.3, torque_offset=0.5, seed=3))
+    params = PlantParameters.draw(lwr, ModelMismatch(mass=0.2, friction=0.1, armature=0.3, torque_offset=0.5, seed=3))
     assert not np.allclose(params.mass_scale, 1.0) and not np.allclose(params.armature, lwr.model.armature)
     plant, model = Plant(lwr, params), params.pinocchio_model(lwr)
     data = model.createData()
@@ -45,8 +45,8 @@ def test_a_drawn_plant_is_the_same_robot_in_both_engines(lwr) -> None:
         assert np.allclose(a, pin.crba(model, data, q), atol=1e-9, rtol=0)  # (crba fills the upper triangle)
         assert np.allclose(np.triu(a), np.triu(data.M), atol=1e-9, rtol=0)
         assert np.allclose(g, pin.computeGeneralizedGravity(model, data, q), atol=1e-9, rtol=0)
-    assert PlantParameters.draw(lwr, ModelError(seed=3)).mass_scale.tolist() == [1.0] * 7  # no error: nominal
-    same = PlantParameters.draw(lwr, ModelError(mass=0.2, friction=0.1, armature=0.3, torque_offset=0.5, seed=3))
+    assert PlantParameters.draw(lwr, ModelMismatch(seed=3)).mass_scale.tolist() == [1.0] * 7  # no error: nominal
+    same = PlantParameters.draw(lwr, ModelMismatch(mass=0.2, friction=0.1, armature=0.3, torque_offset=0.5, seed=3))
     assert np.array_equal(same.torque_offset, params.torque_offset)  # seeded
 
 
@@ -71,7 +71,7 @@ def test_recorded_felt_mass_and_friction_are_the_plants(lwr) -> None:
     """Must hold: the recorded felt mass and friction equal an independent computation on the plant's model
     (Pinocchio with the drawn parameters, NumPy) at the recorded configurations; the controller's estimates
     are recorded beside them."""
-    error = ModelError(mass=0.15, friction=0.2, armature=0.2, seed=5)
+    error = ModelMismatch(mass=0.15, friction=0.2, armature=0.2, seed=5)
     ctrl = qpnso.Controller(lwr, qpnso.ControllerConfig())
     q0 = lwr.sample_configuration()
     result = simulate(ctrl, hold_motion(lwr.tool_pose(q0), 0.1), q0, SimulationConfig(model_error=error))

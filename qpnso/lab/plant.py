@@ -4,7 +4,7 @@ One robot, two engines.  MuJoCo reads the robot's URDF; the model's reflected ro
 (``model.armature``, :func:`qpnso.model.robot.load_robot`), its Coulomb sliding torques (``frictionloss`` =
 the robot's ``friction.tau_max``) and its viscous damping (``damping`` = the URDF's ``<dynamics damping>``,
 Pinocchio's ``model.damping``) are set on the MuJoCo joints, so the plant is the controller's model
-unless a :class:`ModelError` says otherwise.  The one declared difference: the plant's Coulomb friction is
+unless a :class:`ModelMismatch` says otherwise.  The one declared difference: the plant's Coulomb friction is
 MuJoCo's hard (set-valued) friction, the controller's is its smooth approximation [M 23].
 
 The plant integrates with MuJoCo's ``implicitfast`` integrator at ``timestep`` (default 0.5 ms: two steps
@@ -40,7 +40,7 @@ HAND_BODY = "qpnso_hand"
 
 
 @dataclass(frozen=True)
-class ModelError:
+class ModelMismatch:
     """How the plant is drawn from the nominal model (seeded; all zero: the plant is the model).
 
     Relative standard deviations (1 = 100 %) of normal draws, one per joint or link: ``mass`` scales each
@@ -63,7 +63,7 @@ class ModelError:
                 raise out_of_range(self, name, "must be >= 0")
 
     @classmethod
-    def from_dict(cls, values: dict, where: str = "") -> "ModelError":
+    def from_dict(cls, values: dict, where: str = "") -> "ModelMismatch":
         """Build from plain data (a ``[model_error]`` table)."""
         return settings_from_dict(cls, values, where)
 
@@ -85,9 +85,9 @@ class PlantParameters:
     torque_offset: np.ndarray
 
     @classmethod
-    def draw(cls, robot: Robot, error: ModelError | None = None) -> "PlantParameters":
+    def draw(cls, robot: Robot, error: ModelMismatch | None = None) -> "PlantParameters":
         """The nominal parameters of ``robot``, perturbed by ``error`` (seeded)."""
-        e = error or ModelError()
+        e = error or ModelMismatch()
         n = robot.nq
         rng = np.random.default_rng(e.seed)
         factor = lambda sd: np.maximum(0.1, 1.0 + sd * rng.standard_normal(n))  # noqa: E731

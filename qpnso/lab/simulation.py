@@ -35,7 +35,7 @@ from qpnso.control.offline import Recorder, RunResult
 from qpnso.control.trajectory import Trajectory
 from qpnso.errors import QpnsoError
 from qpnso.lab.metrics import clearance_summary, hand_summary, segment_smoothness
-from qpnso.lab.plant import ModelError, Plant, PlantParameters
+from qpnso.lab.plant import ModelMismatch, Plant, PlantParameters
 from qpnso.lab.surgeon import ForceNoise, IntendedMotion, Subject
 from qpnso.model.obstacles import Obstacle, as_obstacles
 from qpnso.model.robot import Robot
@@ -55,13 +55,13 @@ for human movement records, Winter; fixed before any result was seen)."""
 @dataclass
 class SimulationConfig:
     """Settings of the hands-on simulation: the plant's step (s; a divisor of the control period), the
-    surgeon (a :class:`Subject` or a dict), the plant's :class:`ModelError` (or a dict), the force noise's
+    surgeon (a :class:`Subject` or a dict), the plant's :class:`ModelMismatch` (or a dict), the force noise's
     seed and the smoothness filter's cut-off (Hz).  ``plant_friction`` False takes the joints' friction out
     of the plant (not out of the controller's model): an experiment that isolates the null-space projector."""
 
     timestep: float = 1e-3
     surgeon: Subject = field(default_factory=Subject)
-    model_error: ModelError = field(default_factory=ModelError)
+    model_error: ModelMismatch = field(default_factory=ModelMismatch)
     noise_seed: int = 0
     smoothness_cutoff_hz: float = SMOOTHNESS_CUTOFF_HZ
     plant_friction: bool = True

@@ -13,7 +13,7 @@ from typing import Any
 
 from qpnso.errors import QpnsoError
 from qpnso.lab.parallel import job_rng
-from qpnso.lab.plant import ModelError
+from qpnso.lab.plant import ModelMismatch
 from qpnso.lab.surgeon import Subject
 
 SUBJECT_STREAM = 100_000
@@ -48,9 +48,9 @@ COLUMNS = {"user_work_per_metre_N": "work_per_metre"}
 """Summary keys a trial row names otherwise (``work_per_metre``: N = J/m, [M 24] before normalisation)."""
 
 
-def model_error(seed: int, values: dict[str, float] | None = None) -> ModelError:
+def model_error(seed: int, values: dict[str, float] | None = None) -> ModelMismatch:
     """The experiment's plant draw: :data:`EXPERIMENT_MODEL_ERROR` (or ``values``), seeded by ``seed``."""
-    return ModelError(**(EXPERIMENT_MODEL_ERROR if values is None else values), seed=int(seed))
+    return ModelMismatch(**(EXPERIMENT_MODEL_ERROR if values is None else values), seed=int(seed))
 
 
 def scaled_robot(name: str, armature_scale: float = 1.0):

@@ -204,3 +204,22 @@ def test_elbow_experiment_from_the_command_line(tmp_path, capsys) -> None:
     assert {r["strategy"] for r in rows} == {"DP", "FOP", "NSO", "qp"}
     assert main(["experiment", "elbow", "--orders", "2", "--out", str(tmp_path / "x")]) == 2
     assert "--orders does not apply to experiment elbow" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "name, options, message",
+    [
+        ("mass-friction", {"subjects": 0}, "subjects must be >= 1"),
+        ("mass-friction", {"moves": 1}, r"moves must be in \[2, 12\]"),
+        ("mass-friction", {"armature_scale": -1.0}, "armature_scale must be >= 0"),
+        ("elbow", {"trials": 0}, "subjects and trials must be >= 1"),
+        ("elbow", {"duration_scale": 0.0}, r"duration_scale must be in \(0, 1\]"),
+        ("walking", {}, "unknown experiment 'walking'"),
+    ],
+)
+def test_bad_experiment_options_are_named(tmp_path, name, options, message) -> None:
+    from qpnso.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        run_experiment(name, tmp_path / "x", options, workers=1)
+    assert not (tmp_path / "x").exists()  # (refused before any job ran)

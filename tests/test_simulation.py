@@ -159,3 +159,26 @@ def test_every_simulation_summary_has_smoothness_per_segment() -> None:
     keys = [k for k in run.summary if k.startswith("smoothness_segment_")]
     assert keys and run.summary["smoothness"] == pytest.approx(np.median([run.summary[k] for k in keys]))
     assert run.summary["hand_work_J"] > 0 and run.summary["orthogonal_torque_mean_Nm"] >= 0
+
+
+# ------------------------------------------------------------------ error paths
+def test_simulation_errors_are_named(lwr) -> None:
+    from qpnso.lab.metrics import hand_summary, low_pass
+    from qpnso.lab.plant import tool_site_spec
+    from qpnso.lab.simulation import SimulationError
+
+    ctrl = qpnso.Controller(lwr, qpnso.ControllerConfig())
+    q0 = lwr.sample_configuration()
+    with pytest.raises(SimulationError, match="must divide the control period"):
+        simulate(ctrl, hold_motion(lwr.tool_pose(q0), 0.01), q0, SimulationConfig(timestep=3e-4))
+    fake = qpnso.load_robot()
+    fake.source = "not-a-file.urdf"
+    with pytest.raises(qpnso.ModelError, match="MuJoCo cannot load"):
+        tool_site_spec(fake)
+    with pytest.raises(qpnso.ConfigError, match="is for robot 'lwr4p', got 'iiwa14'"):
+        simulate_scenario("A", "qp", 0.01, robot=qpnso.load_robot("iiwa14"))
+    t = np.arange(100) * 1e-3
+    with pytest.raises(qpnso.InputError, match="cutoff_hz must be in"):
+        low_pass(t, np.zeros((100, 3)), 600.0)
+    with pytest.raises(qpnso.InputError, match="wrench must have shape"):
+        hand_summary(t, np.zeros((100, 3)), np.zeros((100, 6)), np.zeros((100, 3)))

@@ -309,24 +309,18 @@ def mink_ticks(robot: Robot, q0: np.ndarray, target: MovingTarget | None = None)
         import mujoco
     except ImportError:
         return None
+    from qpnso.errors import ModelError
+    from qpnso.lab.plant import TOOL_SITE, tool_site_spec
+
     try:
-        spec = mujoco.MjSpec.from_file(robot.source)
-    except Exception:  # (a URDF whose meshes MuJoCo cannot find: no mink row)
+        spec = tool_site_spec(robot)
+    except ModelError:  # (a URDF whose meshes MuJoCo cannot find, or without the tool's joint: no mink row)
         return None
-    frame = robot.model.frames[robot.tool_frame_id]
-    plain = spec.compile()
-    joint = robot.model.names[frame.parentJoint]
-    if joint not in [plain.joint(j).name for j in range(plain.njnt)]:
-        return None
-    body = spec.body(plain.body(plain.jnt_bodyid[plain.joint(joint).id]).name)
-    quat = np.empty(4)
-    mujoco.mju_mat2Quat(quat, frame.placement.rotation.ravel())
-    body.add_site(name="qpnso_tool", pos=frame.placement.translation, quat=quat)
     configuration = mink.Configuration(spec.compile())
     configuration.update(q0)
-    frame_task = mink.FrameTask("qpnso_tool", "site", position_cost=1.0, orientation_cost=1.0)
+    frame_task = mink.FrameTask(TOOL_SITE, "site", position_cost=1.0, orientation_cost=1.0)
     posture = mink.PostureTask(configuration.model, cost=1e-3)
-    start = configuration.get_transform_frame_to_world("qpnso_tool", "site")
+    start = configuration.get_transform_frame_to_world(TOOL_SITE, "site")
     p0, R0 = start.translation().copy(), start.rotation().as_matrix().copy()
     frame_task.set_target(start)
     posture.set_target(q0)
@@ -336,7 +330,7 @@ def mink_ticks(robot: Robot, q0: np.ndarray, target: MovingTarget | None = None)
         configuration.integrate_inplace(mink.solve_ik(configuration, tasks, dt, solver="daqp"), dt)
 
     def tool_pose() -> pin.SE3:
-        pose = configuration.get_transform_frame_to_world("qpnso_tool", "site")
+        pose = configuration.get_transform_frame_to_world(TOOL_SITE, "site")
         return pin.SE3(pose.rotation().as_matrix(), pose.translation())
 
     def set_target(R: np.ndarray, p: np.ndarray) -> None:

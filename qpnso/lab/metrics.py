@@ -161,14 +161,13 @@ def hand_summary(t, wrench, twist, p) -> dict[str, float]:
     v = _array(twist, "twist", 2, 6)
     pos = _array(p, "p", 2, 3)
     _same_length(t=ts, wrench=f, twist=v, p=pos)
-    power = np.abs(np.einsum("ij,ij->i", f, v))
     speed = np.linalg.norm(v[:, :3], axis=1)
     moving = speed > 1e-3
     u = v[moving, :3] / speed[moving, None]
     m = f[moving, 3:]
     orthogonal = m - np.einsum("ij,ij->i", m, u)[:, None] * u
     return {
-        "hand_work_J": float(np.sum(0.5 * (power[1:] + power[:-1]) * np.diff(ts))),
+        "hand_work_J": absolute_work(f, v, ts),
         "tool_displacement_max_m": float(np.max(np.linalg.norm(pos - pos[0], axis=1))),
         "orthogonal_torque_mean_Nm": float(np.mean(np.linalg.norm(orthogonal, axis=1))) if moving.any() else math.nan,
     }
@@ -226,8 +225,14 @@ def user_work_per_metre(force, velocity, t, p) -> float:
     length = path_length(p)
     if not length > 0:
         raise InputError("work per metre is undefined for a path of zero length")
-    power = np.abs(np.einsum("ij,ij->i", f, v))
-    return float(np.sum(0.5 * (power[1:] + power[:-1]) * np.diff(ts)) / length)
+    return absolute_work(f, v, ts) / length
+
+
+def absolute_work(force: np.ndarray, velocity: np.ndarray, t: np.ndarray) -> float:
+    """∫|F·v| dt (J) of checked arrays: a force or wrench (N, k) on a velocity or twist (N, k) over times
+    ``t`` (N,) s, trapezoidal rule (the numerator of :func:`user_work_per_metre`)."""
+    power = np.abs(np.einsum("ij,ij->i", force, velocity))
+    return float(np.sum(0.5 * (power[1:] + power[:-1]) * np.diff(t)))
 
 
 def relative_work(work_per_metre: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -29,6 +29,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.errors import ModelError as ModelFileError
+from qpnso.model.costs import principal_masses
 from qpnso.model.robot import Robot
 from qpnso.settings import check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
@@ -121,14 +122,18 @@ def tool_site_spec(robot: Robot) -> mujoco.MjSpec:
         raise ModelFileError(f"MuJoCo cannot load {robot.source!r}: {exc}") from None
     frame = robot.model.frames[robot.tool_frame_id]
     joint = robot.model.names[frame.parentJoint]
-    names = [plain.joint(j).name for j in range(plain.njnt)]
-    if names != robot.joint_names:
-        raise ModelFileError(f"MuJoCo's joints {names} are not the model's {robot.joint_names}")
+    if joint not in mujoco_joint_names(plain):
+        raise ModelFileError(f"MuJoCo's model of {robot.source!r} has no joint {joint!r} (the tool frame's)")
     body = spec.body(plain.body(plain.jnt_bodyid[plain.joint(joint).id]).name)
     quat = np.empty(4)
     mujoco.mju_mat2Quat(quat, frame.placement.rotation.ravel())
     body.add_site(name=TOOL_SITE, pos=frame.placement.translation, quat=quat)
     return spec
+
+
+def mujoco_joint_names(model: mujoco.MjModel) -> list[str]:
+    """The names of a compiled MuJoCo model's joints, in order."""
+    return [model.joint(j).name for j in range(model.njnt)]
 
 
 class Plant:
@@ -156,7 +161,6 @@ class Plant:
         self.site = self.model.site(TOOL_SITE).id
         self.hand = self.model.body(HAND_BODY).id if hand_mass > 0 else -1
         self._jac = np.zeros((6, self.model.nv))
-        self._vel = np.zeros(6)
 
     def _compile(self, robot: Robot, hand_mass: float, hand_inertia: float, timestep: float) -> mujoco.MjModel:
         spec = tool_site_spec(robot)
@@ -170,6 +174,8 @@ class Plant:
             hand = site.parent.add_body(name=HAND_BODY, pos=site.pos, quat=site.quat)
             hand.mass, hand.inertia, hand.explicitinertial = hand_mass, [hand_inertia] * 3, True
         model = spec.compile()
+        if mujoco_joint_names(model) != robot.joint_names:
+            raise ModelFileError(f"MuJoCo's joints {mujoco_joint_names(model)} are not the model's {robot.joint_names}")
         p = self.params
         for k in range(robot.nq):
             model.body_mass[model.jnt_bodyid[k]] *= p.mass_scale[k]
@@ -188,11 +194,6 @@ class Plant:
     def dq(self) -> np.ndarray:
         """Joint velocities (rad/s), a copy."""
         return self.data.qvel.copy()
-
-    @property
-    def time(self) -> float:
-        """Simulated time (s) since :meth:`reset`."""
-        return float(self.data.time)
 
     def reset(self, q: np.ndarray, dq: np.ndarray | None = None) -> None:
         """At ``q`` (rad) with ``dq`` (rad/s, default rest), time 0."""
@@ -245,17 +246,16 @@ class Plant:
         1/λ_min(Jv A⁻¹ Jvᵀ) [M 8]) and the potential friction force (N, √Σ_i ‖J̄ᵀ τf(J̄ s e_i)‖² [M 15] with
         the plant's friction, ``speed`` s in m/s), each (N,)."""
         qs = np.atleast_2d(qs)
-        mass, force = np.empty(len(qs)), np.empty(len(qs))
+        lam_inv, force = np.empty((len(qs), 3, 3)), np.empty(len(qs))
         for k, q in enumerate(qs):
             a, _, jac = self.dynamics(q)
             jv = jac[:3]
             a_inv_jt = np.linalg.solve(a, jv.T)
-            lam_inv = jv @ a_inv_jt
-            mass[k] = 1.0 / np.linalg.eigvalsh(0.5 * (lam_inv + lam_inv.T))[0]
-            jbar = a_inv_jt @ np.linalg.inv(lam_inv)
+            lam_inv[k] = jv @ a_inv_jt
+            jbar = a_inv_jt @ np.linalg.inv(lam_inv[k])
             forces = jbar.T @ self.friction_torque(speed * jbar)
             force[k] = float(np.sqrt(np.sum(forces**2)))
-        return mass, force
+        return principal_masses(lam_inv), force
 
     def describe(self) -> dict[str, object]:
         """The plant as plain data, for a run's summary: engine and version, integrator, step, parameters."""

@@ -378,6 +378,13 @@ def _default_friction(name: str, model: pin.Model) -> JointFriction:
     return friction_from_lists(tau, [default["beta_s_per_rad"][0]] * model.nv, model.nv)
 
 
+def load_robot_with_armature_scale(name_or_path: str | Path, scale: float) -> Robot:
+    """:func:`load_robot` with the model's rotor inertias (``models/armature.json``) times ``scale`` (0: none;
+    1: the robot as shipped, loaded once)."""
+    robot = load_robot(name_or_path)
+    return robot if scale == 1.0 else load_robot(name_or_path, armature=robot.model.armature * scale)
+
+
 def _armature(name: str, model: pin.Model) -> np.ndarray:
     """The reflected rotor inertias (kg·m²) of ``models/armature.json`` for a shipped robot, else the
     model's own (zero for a URDF, which has no field for it)."""

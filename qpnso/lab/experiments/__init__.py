@@ -22,7 +22,9 @@ from pathlib import Path
 from typing import Any
 
 from qpnso.errors import ConfigError
+from qpnso.lab.experiments.elbow import STRATEGIES as ELBOW_STRATEGIES
 from qpnso.lab.experiments.elbow import ElbowOptions, elbow_job
+from qpnso.lab.experiments.mass_friction import STRATEGIES as MF_STRATEGIES
 from qpnso.lab.experiments.mass_friction import MassFrictionOptions, mass_friction_job, work_area_summary
 from qpnso.lab.parallel import RunSpec, run_jobs
 
@@ -69,24 +71,15 @@ def run_experiment(
         stats = analysis.mass_friction_stats(rows, work_area_summary(opts))
         report = analysis.mass_friction_report(stats, header)
         panels = [
-            (
-                "normalised work",
-                analysis.groups(rows, "work_normalised", stats["work_normalised"]["with_ablation"]["spread"]),
-            ),
-            (
-                "normalised orthogonal moment",
-                analysis.groups(
-                    rows, "orthogonal_torque_normalised", stats["work_normalised"]["with_ablation"]["spread"]
-                ),
-            ),
+            ("normalised work", analysis.groups(rows, "work_normalised", MF_STRATEGIES)),
+            ("normalised orthogonal moment", analysis.groups(rows, "orthogonal_torque_normalised", MF_STRATEGIES)),
         ]
     else:
         stats = analysis.elbow_stats(rows)
         report = analysis.elbow_report(stats, header)
-        names = list(stats["A"]["elbow_mobility_deg"]["spread"])
         panels = [
-            ("A: Δ (deg)", analysis.groups(rows, "elbow_mobility_deg", names, scenario="A")),
-            ("B: Δc (deg)", analysis.groups(rows, "constraint_proximity_deg", names, scenario="B")),
+            ("A: Δ (deg)", analysis.groups(rows, "elbow_mobility_deg", ELBOW_STRATEGIES, scenario="A")),
+            ("B: Δc (deg)", analysis.groups(rows, "constraint_proximity_deg", ELBOW_STRATEGIES, scenario="B")),
             ("A: S per segment", analysis.elbow_segments(rows, "A")),
             ("B: S per segment", analysis.elbow_segments(rows, "B")),
         ]

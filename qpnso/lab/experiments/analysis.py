@@ -284,7 +284,8 @@ def work_area_line(area: dict[str, float]) -> str:
         f"Work area (controller's model): the fixed posture is at arm angle {area['fixed_arm_angle_deg']:.1f}° "
         f"(elbow up: 0°); felt mass {area['mass_fixed_kg']:.2f} kg there against {area['mass_elbow_up_kg']:.2f} kg "
         f"elbow up, friction force {area['friction_fixed_N']:.1f} N against {area['friction_elbow_up_N']:.1f} N; "
-        f"fixed and elbow-up held by 100 N·m/rad with {area['nullspace_damping_Nms_per_rad']:.3g} N·m·s/rad."
+        f"fixed and elbow-up held by {area['posture_stiffness_Nm_per_rad']:g} N·m/rad with "
+        f"{area['nullspace_damping_Nms_per_rad']:.3g} N·m·s/rad."
     )
 
 

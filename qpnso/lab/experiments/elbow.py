@@ -27,7 +27,6 @@ from qpnso.lab.experiments.trials import (
     model_error,
     noise_seed,
     run_or_error,
-    scaled_robot,
     subject,
     subject_record,
     trial_row,
@@ -70,22 +69,19 @@ def elbow_job(index: int, seed: int, opts: ElbowOptions) -> dict[str, Any]:
     """One trial of job ``index``: its row."""
     from qpnso.lab.scenarios import load_scenario, simulate_scenario
     from qpnso.lab.simulation import SimulationConfig
+    from qpnso.model.robot import load_robot_with_armature_scale
 
     scenario, s, trial, name = opts.job(index)
     person = subject(seed, s)
     sim = SimulationConfig(
         surgeon=person, model_error=model_error(seed, opts.model_error or None), noise_seed=noise_seed(seed, index)
     )
+    sc = load_scenario(scenario)
+    robot = load_robot_with_armature_scale(sc.robot, opts.armature_scale)
     summary, error = run_or_error(
-        lambda: simulate_scenario(
-            scenario,
-            STRATEGIES[name],
-            opts.duration_scale,
-            simulation=sim,
-            robot=scaled_robot("lwr4p", opts.armature_scale),
-        )
+        lambda: simulate_scenario(scenario, STRATEGIES[name], opts.duration_scale, simulation=sim, robot=robot)
     )
-    margin = float(load_scenario(scenario).controller.get("safety_margin_deg", 10.0))
+    margin = float(sc.controller.get("safety_margin_deg", 10.0))
     return {
         "scenario": scenario,
         "strategy": name,

@@ -41,7 +41,6 @@ from qpnso.lab.experiments.trials import (
     model_error,
     noise_seed,
     run_or_error,
-    scaled_robot,
     subject,
     subject_record,
     trial_row,
@@ -97,13 +96,15 @@ class MassFrictionOptions:
 
 @dataclass(frozen=True)
 class WorkArea:
-    """The work area's postures (rad): elbow up (ns = 0) and the fixed optimum, its arm angle (rad), and the
-    null-space damping (N·m·s/rad) of the fixed and elbow-up impedance."""
+    """The work area's postures (rad): elbow up (ns = 0) and the fixed optimum, its arm angle (rad), the
+    null-space damping (N·m·s/rad) of the fixed and elbow-up impedance, and the experiment's premise measured
+    on the controller's model (:func:`work_area_summary`)."""
 
     q_up: np.ndarray
     q_opt: np.ndarray
     ns_opt: float
     damping: float
+    premise: dict[str, float]
 
 
 ELBOW_UP_BRANCH = (-1, 1, -1)
@@ -122,16 +123,16 @@ def work_area(opts: MassFrictionOptions) -> WorkArea:
 
 
 def _work_area(opts: MassFrictionOptions) -> WorkArea:
-    from qpnso.control.config import ControllerConfig
-    from qpnso.control.controller import Controller
     from qpnso.elbow.intervals import continuity_interval
     from qpnso.elbow.srs import Branch, ik
+    from qpnso.model.costs import CostModel
+    from qpnso.model.robot import load_robot_with_armature_scale
 
-    robot = scaled_robot(opts.robot, opts.armature_scale)
+    robot = load_robot_with_armature_scale(opts.robot, opts.armature_scale)
     pose, b = opts.pose(), Branch(*ELBOW_UP_BRANCH)
     q_up = ik(robot, pose, 0.0, b)
     iv = continuity_interval(robot, q_up)
-    cost = Controller(robot, ControllerConfig()).cost
+    cost = CostModel(robot)  # (the controller's cost: default weights, 50 % mass, 50 % friction force)
     value = lambda ns: cost.value(ik(robot, pose, ns, b))  # noqa: E731
     grid = np.arange(iv.lo + 1e-3, iv.hi - 1e-3, math.radians(0.5))
     k = int(np.argmin([value(ns) for ns in grid]))
@@ -141,25 +142,22 @@ def _work_area(opts: MassFrictionOptions) -> WorkArea:
     u = np.linalg.svd(robot.jacobian(q_opt))[2][-1]  # the unit null-space direction
     inertia = float(u @ robot.mass_matrix(q_opt) @ u)
     damping = 2.0 * opts.damping_ratio * math.sqrt(opts.posture_stiffness * inertia)
-    return WorkArea(q_up, q_opt, ns, damping)
+    premise = {
+        "fixed_arm_angle_deg": math.degrees(ns),
+        "mass_elbow_up_kg": cost.principal_mass(q_up),
+        "mass_fixed_kg": cost.principal_mass(q_opt),
+        "friction_elbow_up_N": cost.friction_force_magnitude(q_up),
+        "friction_fixed_N": cost.friction_force_magnitude(q_opt),
+        "posture_stiffness_Nm_per_rad": opts.posture_stiffness,
+        "nullspace_damping_Nms_per_rad": damping,
+    }
+    return WorkArea(q_up, q_opt, ns, damping, premise)
 
 
 def work_area_summary(opts: MassFrictionOptions) -> dict[str, float]:
-    """The experiment's premise, measured on the controller's model: the fixed posture's arm angle (deg) and
-    the felt mass (kg) and friction force (N) at the elbow-up and at the fixed posture."""
-    from qpnso.control.config import ControllerConfig
-    from qpnso.control.controller import Controller
-
-    area = work_area(opts)
-    cost = Controller(scaled_robot(opts.robot, opts.armature_scale), ControllerConfig()).cost
-    return {
-        "fixed_arm_angle_deg": math.degrees(area.ns_opt),
-        "mass_elbow_up_kg": cost.principal_mass(area.q_up),
-        "mass_fixed_kg": cost.principal_mass(area.q_opt),
-        "friction_elbow_up_N": cost.friction_force_magnitude(area.q_up),
-        "friction_fixed_N": cost.friction_force_magnitude(area.q_opt),
-        "nullspace_damping_Nms_per_rad": area.damping,
-    }
+    """The experiment's premise, measured on the controller's model: the fixed posture's arm angle (deg), the
+    felt mass (kg) and friction force (N) at the elbow-up and at the fixed posture, and their impedance."""
+    return dict(work_area(opts).premise)
 
 
 def controller_values(strategy: str, area: WorkArea, opts: MassFrictionOptions) -> dict[str, Any]:
@@ -181,6 +179,7 @@ def mass_friction_job(index: int, seed: int, opts: MassFrictionOptions) -> dict[
     from qpnso.control.controller import Controller
     from qpnso.lab.simulation import SimulationConfig, simulate
     from qpnso.lab.surgeon import dome_targets, point_to_point_motion
+    from qpnso.model.robot import load_robot_with_armature_scale
 
     s, order, rep, strategy = opts.job(index)
     area = work_area(opts)
@@ -189,7 +188,7 @@ def mass_friction_job(index: int, seed: int, opts: MassFrictionOptions) -> dict[
     targets = dome_targets(pose.translation, opts.dome_radius, opts.moves)
     perm = job_rng(seed, ORDER_STREAM + order).permutation(opts.moves)
     motion = point_to_point_motion(pose, targets[perm], opts.peak_speed * person.speed_scale, opts.dwell)
-    robot = scaled_robot(opts.robot, opts.armature_scale)
+    robot = load_robot_with_armature_scale(opts.robot, opts.armature_scale)
     q0 = area.q_up if strategy in ("damped", "elbow-up") else area.q_opt
     sim = SimulationConfig(
         surgeon=person, model_error=model_error(seed, opts.model_error or None), noise_seed=noise_seed(seed, index)

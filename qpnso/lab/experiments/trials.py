@@ -53,15 +53,6 @@ def model_error(seed: int, values: dict[str, float] | None = None) -> ModelMisma
     return ModelMismatch(**(EXPERIMENT_MODEL_ERROR if values is None else values), seed=int(seed))
 
 
-def scaled_robot(name: str, armature_scale: float = 1.0):
-    """Robot ``name`` with its rotor inertias (``models/armature.json``) times ``armature_scale``: the same
-    model for the controller and the plant (0: a robot without them)."""
-    from qpnso.model.robot import load_robot
-
-    robot = load_robot(name)
-    return robot if armature_scale == 1.0 else load_robot(name, armature=robot.model.armature * armature_scale)
-
-
 def subject(seed: int, index: int) -> Subject:
     """Subject ``index`` of an experiment run with ``seed``."""
     return Subject.draw(job_rng(seed, SUBJECT_STREAM + index))

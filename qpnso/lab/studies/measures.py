@@ -15,7 +15,7 @@ import numpy as np
 
 from qpnso.model.codegen import FastFunction
 from qpnso.model.costs import CostModel, principal_masses, smooth_coulomb
-from qpnso.model.robot import Robot, load_robot
+from qpnso.model.robot import Robot, load_robot_with_armature_scale
 
 
 # --------------------------------------------------------- measures along q
@@ -70,8 +70,7 @@ class Workbench:
     normalised cost model and the measure functions."""
 
     def __init__(self, robot_name: str = "lwr4p", compile: str = "off", armature_scale: float = 1.0) -> None:
-        nominal = load_robot(robot_name)
-        self.robot: Robot = load_robot(robot_name, armature=nominal.model.armature * armature_scale)
+        self.robot: Robot = load_robot_with_armature_scale(robot_name, armature_scale)
         self.cost = CostModel(self.robot, compile=compile)
         self._fn = curve_function(self.cost)
         self._one = FastFunction(self._fn, compile)

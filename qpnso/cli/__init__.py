@@ -8,7 +8,7 @@ tool left the trajectory by more than the tolerance) writes its results, prints
 one line ``qpnso: failed: ...`` and exits with status 1.
 
 The parser and :func:`main` are here; the sub-commands are in :mod:`.commands`
-(info, intervals, trajectory, solve, simulate, plot, compare, study) and :mod:`.bench`
+(info, intervals, trajectory, solve, simulate, plot, compare, study, view) and :mod:`.bench`
 (``qpnso bench ...``), the argument and output helpers they share in :mod:`.common`.
 """
 
@@ -29,6 +29,7 @@ from qpnso.cli.commands import (
     cmd_solve,
     cmd_study,
     cmd_trajectory,
+    cmd_view,
 )
 from qpnso.cli.common import add_q_arguments, add_robot_arguments
 from qpnso.errors import QpnsoError
@@ -127,6 +128,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("result")
     p.add_argument("--out", default="run.png")
     p.set_defaults(handler=cmd_plot)
+
+    p = sub.add_parser("view", help="3-D replay of a run in the browser: a live server, or one HTML page (--html)")
+    p.add_argument("result", nargs="?", default=None, help="a result.npz (of qpnso solve or simulate)")
+    p.add_argument("--scenario", default=None, help="instead of a file: simulate a scenario (A, B, microscope, .toml)")
+    p.add_argument("--strategy", default=None, help="with --scenario: the strategy (default: the scenario's, qp)")
+    p.add_argument("--duration-scale", type=float, default=1.0, help="with --scenario: run only this fraction")
+    p.add_argument("--ignore-obstacles", action="store_true", help=f"with --scenario: {IGNORE_OBSTACLES_HELP}")
+    p.add_argument("--html", default=None, help="write one self-contained page that plays the run, then exit")
+    p.add_argument("--fps", type=float, default=20.0, help="frames per second of the page or timeline (default 20)")
+    p.add_argument("--host", default="127.0.0.1", help="the live server's address (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="the live server's port (default 8080)")
+    p.add_argument("--robot", default=None, help="a file without a robot record: lwr4p, iiwa14, panda or a URDF")
+    p.add_argument("--tool-frame", default=None, help="with --robot: frame the tool is mounted on")
+    p.add_argument("--tool-offset", default=None, help="with --robot: tool point in that frame, x,y,z in metres")
+    p.add_argument("--obstacles", default=None, help="TOML file of [[obstacles]] drawn instead of the file's")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(handler=cmd_view)
 
     p = sub.add_parser("compare", help="several strategies on one scenario: table and figure")
     p.add_argument("--scenario", default="B")

@@ -234,46 +234,62 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+PLOTTED = (
+    "t",
+    "ns",
+    "rom_lo",
+    "rom_hi",
+    "interval_lo",
+    "interval_hi",
+    "stiffness",
+    "mass",
+    "friction_force",
+    "tool_position",
+)
+"""The arrays ``qpnso plot`` draws."""
+
+
 def cmd_plot(args: argparse.Namespace) -> int:
     """Plot a result.npz (arm angle, ROM_t, bounds, stiffness, felt mass/friction, tool path)."""
-    import zipfile
-    from pathlib import Path
-
+    from qpnso.control.offline import read_result
     from qpnso.errors import InputError
     from qpnso.lab.plots import plot_run
 
-    path = Path(args.result)
-    if not path.is_file():
-        raise InputError(f"result file not found: {path}")
-    not_result = f"{path} is not a qpnso result .npz (the --out file of qpnso solve or simulate)"
-    if not zipfile.is_zipfile(path):  # a CSV, a .npy, ...: np.load would talk about pickled data
-        raise InputError(f"{not_result}: it is not a NumPy .npz archive")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise InputError(f"{not_result}: cannot read it ({exc})") from None
-    missing = [
-        k
-        for k in (
-            "t",
-            "ns",
-            "rom_lo",
-            "rom_hi",
-            "interval_lo",
-            "interval_hi",
-            "stiffness",
-            "mass",
-            "friction_force",
-            "tool_position",
-        )
-        if k not in arrays
-    ]
-    if missing:
-        raise InputError(f"{not_result}: it lacks {missing}")
+    arrays, _ = read_result(args.result, PLOTTED)
     if not have_matplotlib():
         raise InputError(f"qpnso plot needs {NO_MATPLOTLIB}")
     print(f"figure written to {plot_run(arrays, args.out, title=str(args.result))}")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """3-D replay of a result file or of a scenario's simulation: a live viser server, or with ``--html`` one
+    self-contained page."""
+    from qpnso.errors import InputError
+    from qpnso.view import load_replay, scenario_replay
+    from qpnso.view.scene import serve, viser_module, write_html
+
+    viser_module()  # say it is missing before a long simulation, not after
+    positive(args.fps, "--fps")
+    if (args.result is None) == (args.scenario is None):
+        raise InputError("give a result file or --scenario NAME, not both")
+    if args.scenario is not None:
+        replay = scenario_replay(
+            args.scenario,
+            args.strategy,
+            positive(args.duration_scale, "--duration-scale"),
+            progress_bar(not args.quiet, "simulate"),
+            args.ignore_obstacles,
+        )
+    else:
+        robot = load_cli_robot(args, redundant=True) if args.robot else None
+        obstacles = read_obstacles(args.obstacles) if args.obstacles else None
+        replay = load_replay(args.result, robot, obstacles)
+    if args.html:
+        path = write_html(replay, args.html, args.fps)
+        print(f"{replay.title}: {len(replay.frames(args.fps))} frames, {path.stat().st_size / 1e6:.2f} MB -> {path}")
+        return 0
+    serve(replay, args.host, args.port, args.fps)
     return 0
 
 

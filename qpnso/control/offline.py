@@ -7,8 +7,10 @@ kinematically, ``q ← q + dt·q̇``, as a position-controlled arm would follow.
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
+import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -21,7 +23,7 @@ from qpnso.control.config import ControllerConfig, Status
 from qpnso.control.controller import Controller
 from qpnso.control.trajectory import Trajectory
 from qpnso.errors import InputError, QpnsoError, UnreachableError
-from qpnso.model.robot import Robot
+from qpnso.model.robot import Robot, robot_spec
 
 RESULT_KEYS = (
     "t",
@@ -114,6 +116,7 @@ class RunResult:
     failure: str = ""
     first_obstacle: ObstacleTick | None = None
     setup: dict[str, Any] = field(default_factory=dict)  # what ran it, as plain data (a simulation's plant, surgeon)
+    scene: dict[str, Any] = field(default_factory=dict)  # what it moved, as plain data (:func:`scene_record`)
 
     @property
     def ok(self) -> bool:
@@ -121,9 +124,57 @@ class RunResult:
         return not self.failure
 
     def save(self, path: str | Path) -> Path:
-        """Write ``result.npz`` atomically (temporary file, then rename)."""
-        # NumPy's stub: mypy cannot tell that no key of ``**self.arrays`` is the keyword ``allow_pickle: bool``
-        return atomic_write(Path(path), lambda f: np.savez_compressed(f, **self.arrays))  # type: ignore[arg-type]
+        """Write ``result.npz`` atomically (temporary file, then rename): the arrays, and the scene record as the
+        JSON text ``scene`` (read back by :func:`read_result`)."""
+        data = dict(self.arrays)
+        if self.scene:
+            data[SCENE_KEY] = np.array(json.dumps(self.scene))
+        # NumPy's stub: mypy cannot tell that no key of ``**data`` is the keyword ``allow_pickle: bool``
+        return atomic_write(Path(path), lambda f: np.savez_compressed(f, **data))  # type: ignore[arg-type]
+
+
+SCENE_KEY = "scene"
+"""The result file's entry holding :attr:`RunResult.scene` as JSON text."""
+
+
+def scene_record(ctrl: Controller, obstacles=None) -> dict[str, Any]:
+    """What a run moved, as plain data for a 3-D replay: the robot (:func:`~qpnso.model.robot.robot_spec`), the
+    keep-out volumes in the room (``obstacles``, default the controller's: their TOML tables, m, world frame)
+    and how many of them the controller was given (``known_obstacles``)."""
+    room = ctrl.obstacles if obstacles is None else obstacles
+    return {
+        "robot": robot_spec(ctrl.robot),
+        "obstacles": [o.to_dict() for o in room],
+        "known_obstacles": len(ctrl.obstacles),
+    }
+
+
+def read_result(path: str | Path, required: tuple[str, ...]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The arrays of a result file (``--out`` of ``qpnso solve`` or ``simulate``) and its scene record (empty for
+    a file written before it had one); an InputError says what is wrong (no such file, not a ``.npz``, cannot be
+    read, lacks one of ``required``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"result file not found: {path}")
+    not_result = f"{path} is not a qpnso result .npz (the --out file of qpnso solve or simulate)"
+    if not zipfile.is_zipfile(path):  # a CSV, a .npy, ...: np.load would talk about pickled data
+        raise InputError(f"{not_result}: it is not a NumPy .npz archive")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{not_result}: cannot read it ({exc})") from None
+    missing = [k for k in required if k not in arrays]
+    if missing:
+        raise InputError(f"{not_result}: it lacks {missing}")
+    scene = arrays.pop(SCENE_KEY, None)
+    try:
+        record = json.loads(str(scene)) if scene is not None else {}
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: its scene record is not JSON ({exc})") from None
+    if not isinstance(record, dict):
+        raise InputError(f"{path}: its scene record is not a table")
+    return arrays, record
 
 
 def atomic_write(path: Path, write) -> Path:
@@ -349,7 +400,9 @@ class Recorder:
         summary.update(feel_summary(arrays))
         if self.first_obstacle is not None:
             summary.update(self.first_obstacle.summary())
-        return RunResult(arrays, summary, self.messages, first_obstacle=self.first_obstacle)
+        return RunResult(
+            arrays, summary, self.messages, first_obstacle=self.first_obstacle, scene=scene_record(self.ctrl)
+        )
 
 
 _TICK_KEYS = tuple(k for k in RESULT_KEYS if k not in _COMPUTED_AFTER) + ("tool_rotation", "ref_rotation")

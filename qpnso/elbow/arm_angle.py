@@ -120,6 +120,45 @@ class ElbowPoints:
 
 
 @dataclass(frozen=True)
+class ElbowCircle:
+    """The circle the elbow turns on about the shoulder–wrist line, parametrised by the arm angle: [E 2]–[E 4]
+    read backwards, ``point(ns) = centre + radius (cos ns · u_cos + sin ns · u_sin)`` (m, world frame), so that
+    :func:`arm_angle` of the elbow at ``point(ns)`` is ``ns``.  For an S-R-S arm it is the elbow's whole
+    self-motion at the current shoulder and wrist; for another arm the circle through the current elbow."""
+
+    centre: np.ndarray
+    u_cos: np.ndarray
+    u_sin: np.ndarray
+    radius: float
+
+    @property
+    def axis(self) -> np.ndarray:
+        """Unit vector from the shoulder towards the wrist (``u_cos × u_sin``)."""
+        return np.cross(self.u_cos, self.u_sin)
+
+    def point(self, ns: object) -> np.ndarray:
+        """The elbow at arm angle(s) ``ns`` (rad): shape ``(3,)`` or ``(len(ns), 3)``, m, world frame."""
+        a = np.asarray(ns, dtype=float)[..., None]
+        return self.centre + self.radius * (np.cos(a) * self.u_cos + np.sin(a) * self.u_sin)
+
+
+def elbow_circle(ps: np.ndarray, pe: np.ndarray, pw: np.ndarray) -> ElbowCircle:
+    """The :class:`ElbowCircle` of shoulder, elbow and wrist centres ``ps, pe, pw`` (m, world frame), with
+    ``u_sin = z0 × p_sw/|·|`` and ``u_cos = p_sw × u_sin/|·|`` as in [E 3]; a SingularityError where the arm
+    angle is undefined (the wrist on the vertical through the shoulder, or wrist on the shoulder)."""
+    p_sw, p_se = np.asarray(pw, float) - ps, np.asarray(pe, float) - ps
+    z_x = _cross(Z0, p_sw)
+    if not np.linalg.norm(z_x) > 1e-12:
+        raise SingularityError("the elbow circle is undefined: the wrist is on the vertical through the shoulder")
+    u_sin = z_x / np.linalg.norm(z_x)
+    u_cos = _cross(p_sw, u_sin)
+    u_cos /= np.linalg.norm(u_cos)
+    axis = p_sw / np.linalg.norm(p_sw)
+    along = float(p_se @ axis)
+    return ElbowCircle(np.asarray(ps, float) + along * axis, u_cos, u_sin, float(np.linalg.norm(p_se - along * axis)))
+
+
+@dataclass(frozen=True)
 class ArmAngle:
     """Arm angle with its singularity measures.
 

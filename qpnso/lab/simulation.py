@@ -31,7 +31,7 @@ import pinocchio as pin
 
 from qpnso.control.config import Status
 from qpnso.control.controller import Controller
-from qpnso.control.offline import Recorder, RunResult
+from qpnso.control.offline import Recorder, RunResult, scene_record
 from qpnso.control.trajectory import Trajectory
 from qpnso.errors import QpnsoError
 from qpnso.lab.metrics import clearance_summary, hand_summary, segment_smoothness
@@ -131,6 +131,7 @@ def simulate(
         if progress is not None:
             progress(k + 1, n_ticks)
     result = recorder.result()
+    result.scene = scene_record(controller, room)
     summarise(result, motion, cfg)
     result.setup["plant"] = {**plant.describe(), "friction_on": cfg.plant_friction}
     if measure:

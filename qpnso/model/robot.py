@@ -294,6 +294,32 @@ def load_robot(
     return Robot(name, model, tool_id, friction or _default_friction(name, model), source)
 
 
+def robot_spec(robot: Robot) -> dict:
+    """What :func:`load_robot_spec` needs to load ``robot``'s kinematics again, as plain data (a result file's
+    ``scene`` record): ``robot`` (a shipped name or the URDF path), ``tool_frame`` (the frame the tool is mounted
+    on) and ``tool_offset`` (the tool frame in it, a 4×4 homogeneous matrix, m)."""
+    tool = robot.model.frames[robot.tool_frame_id]
+    parent = robot.model.frames[tool.parentFrame]
+    shipped = robot.name in SHIPPED_URDF or robot.name in OPTIONAL_ROBOTS
+    return {
+        "robot": robot.name if shipped else robot.source,
+        "tool_frame": parent.name,
+        "tool_offset": (parent.placement.inverse() * tool.placement).homogeneous.tolist(),
+    }
+
+
+def load_robot_spec(spec: object) -> Robot:
+    """The robot of a :func:`robot_spec` record (a ModelError names what is wrong with the record)."""
+    if not isinstance(spec, dict):
+        raise ModelError(f"not a robot record (robot, tool_frame, tool_offset): {spec!r}")
+    try:
+        offset = pin.SE3(np.array(spec["tool_offset"], dtype=np.float64))
+        name, frame = str(spec["robot"]), str(spec["tool_frame"])
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise ModelError(f"not a robot record (robot, tool_frame, tool_offset): {exc}") from None
+    return load_robot(name, tool_frame=frame, tool_offset=offset)
+
+
 def _load_model(name_or_path: str | Path) -> tuple[str, pin.Model, str]:
     key = str(name_or_path)
     if key in SHIPPED_URDF:

@@ -1,0 +1,303 @@
+"""A replay drawn with viser (the optional extra ``view``): a live server with a timeline, or one HTML page.
+
+The scene (names are viser's scene-tree paths):
+
+* ``/arm/joint_k``: joint k's frame, moved to Pinocchio's ``oMi`` at each shown tick; the link capsules
+  (:func:`~qpnso.view.geometry.capsule_shapes`) are its children, the tool frame a child of its joint;
+* ``/paths/tool`` (red) and ``/paths/reference`` (black): the tool point's recorded path and its reference;
+* ``/elbow``: the elbow circle's frame (:func:`~qpnso.view.geometry.circle_frame`), with the circle (grey),
+  ROM_t (blue, on the circle), the continuity interval (green, 10 % outside it), the spoke from the centre
+  through the elbow at the recorded arm angle, a ball at its end (black); hidden where the arm angle is undefined;
+* ``/obstacles/k``: the room's keep-out volumes (translucent red).
+
+:func:`write_html` records the shown ticks at a frame rate into viser's scene serializer and writes its
+self-contained page (viser's client and the recording, base64, in one file: no server, no network); the page
+has viser's timeline to play and scrub.  :func:`serve` runs a viser server with a time slider, play and speed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from qpnso.errors import InputError
+from qpnso.model.obstacles import Box, Capsule, Obstacle, Sphere
+from qpnso.view.geometry import (
+    arc,
+    capsule_shapes,
+    circle_frame,
+    elbow_circle_at,
+    joint_placements,
+    polyline_segments,
+    unit_circle,
+)
+from qpnso.view.replay import Replay
+
+NO_VISER = "the 3-D view needs viser, which is not installed (pip install 'qpnso[view]')"
+
+ARM = (232, 120, 32)
+TOOL_PATH = (210, 30, 30)
+REFERENCE = (30, 30, 30)
+CIRCLE = (150, 150, 150)
+ROM = (30, 90, 225)
+INTERVAL = (40, 170, 60)
+ELBOW = (20, 20, 20)
+OBSTACLE = (220, 40, 40)
+
+INTERVAL_RADIUS_SCALE = 1.1
+"""The continuity interval is drawn this much outside the circle, so that ROM_t (on it) stays visible."""
+SPOKE_RADIUS_SCALE = 1.25
+"""The arm angle's spoke runs from the circle's centre through the elbow to this many radii, its ball at the end
+(outside the arm's capsules)."""
+PATH_POINTS_MAX = 4000
+"""At most this many points of the tool's path and of its reference are drawn."""
+
+
+def viser_module():
+    """viser, or an InputError saying how to install it."""
+    try:
+        import viser
+    except ImportError:
+        raise InputError(NO_VISER) from None
+    return viser
+
+
+def wxyz(rotation: np.ndarray) -> np.ndarray:
+    """A rotation matrix as viser's quaternion ``(w, x, y, z)``."""
+    x, y, z, w = pin.Quaternion(rotation).coeffs()
+    return np.array([w, x, y, z])
+
+
+def capsule_mesh(a: np.ndarray, b: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (m) and faces of the capsule of axis ``a``–``b`` and ``radius`` (trimesh's capsule)."""
+    import trimesh
+
+    axis = np.asarray(b, float) - a
+    length = float(np.linalg.norm(axis))
+    mesh = trimesh.creation.capsule(height=length, radius=radius, count=[16, 16])
+    z = axis / length if length > 0 else np.array([0.0, 0.0, 1.0])
+    transform = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], z)
+    transform[:3, 3] = 0.5 * (np.asarray(a, float) + b)
+    mesh.apply_transform(transform)
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` now."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+class ReplayScene:
+    """The scene of ``replay`` on a viser ``server`` (module docstring); :meth:`show` moves it to a tick."""
+
+    def __init__(self, server, replay: Replay) -> None:
+        self.replay = replay
+        self.scene = server.scene
+        robot = replay.robot
+        self.joints = [self.scene.add_frame(f"/arm/joint_{j}", show_axes=False) for j in range(1, robot.model.njoints)]
+        self._add_arm()
+        self._add_paths()
+        self._add_obstacles()
+        self._add_elbow()
+        self.shown = -1
+        self.show(0)
+
+    # ------------------------------------------------------------ static parts
+    def _add_arm(self) -> None:
+        robot = self.replay.robot
+        for k, shape in enumerate(capsule_shapes(robot)):
+            parent = f"/arm/joint_{shape.joint}" if shape.joint > 0 else "/arm/base"
+            vertices, faces = capsule_mesh(shape.a, shape.b, shape.radius)
+            self.scene.add_mesh_simple(f"{parent}/capsule_{k}", vertices, faces, color=ARM)
+        tool = robot.model.frames[robot.tool_frame_id]
+        self.scene.add_frame(
+            f"/arm/joint_{tool.parentJoint}/tool",
+            axes_length=0.08,
+            axes_radius=0.004,
+            position=tool.placement.translation,
+            wxyz=wxyz(tool.placement.rotation),
+        )
+        self.scene.add_grid("/floor", width=2.0, height=2.0, cell_size=0.1)
+
+    def _add_paths(self) -> None:
+        step = max(1, len(self.replay.t) // PATH_POINTS_MAX)
+        for name, points, colour in (("tool", self.replay.tool, TOOL_PATH), ("reference", self.replay.ref, REFERENCE)):
+            shown = np.vstack([points[::step], points[-1:]])
+            self.scene.add_line_segments(f"/paths/{name}", polyline_segments(shown), colour, thickness=0.003)
+
+    def _add_obstacles(self) -> None:
+        for k, obstacle in enumerate(self.replay.obstacles):
+            add_obstacle(self.scene, f"/obstacles/{k}", obstacle)
+
+    def _add_elbow(self) -> None:
+        s = self.scene
+        self.elbow = s.add_frame("/elbow", show_axes=False)
+        empty = np.zeros((1, 2, 3))
+        self.circle = s.add_line_segments("/elbow/circle", empty, CIRCLE, thickness=0.003)
+        self.rom = s.add_line_segments("/elbow/rom", empty, ROM, thickness=0.012)
+        self.interval = s.add_line_segments("/elbow/interval", empty, INTERVAL, thickness=0.006)
+        self.spoke = s.add_line_segments("/elbow/spoke", empty, ELBOW, thickness=0.004)
+        self.marker = s.add_icosphere("/elbow/arm_angle", radius=0.02, color=ELBOW)
+
+    def set_camera(self, server) -> None:
+        """Look at the middle of the tool's path from the front right, far enough to see base and tool."""
+        target = 0.5 * (self.replay.tool.mean(axis=0) + np.array([0.0, 0.0, 0.4]))
+        server.initial_camera.look_at = tuple(target)
+        server.initial_camera.position = tuple(target + np.array([0.9, -0.9, 0.5]))
+        server.initial_camera.up = (0.0, 0.0, 1.0)
+
+    # ------------------------------------------------------------------ motion
+    def show(self, k: int) -> None:
+        """Move the scene to tick ``k``: the joints' frames, the elbow circle, ROM_t, the interval, the arm angle."""
+        r = self.replay
+        q = r.q[k]
+        for node, placement in zip(self.joints, joint_placements(r.robot, q)):
+            node.position = placement.translation
+            node.wxyz = wxyz(placement.rotation)
+        self._show_elbow(k)
+        self.shown = k
+
+    def _show_elbow(self, k: int) -> None:
+        r = self.replay
+        ns = float(r.ns[k])
+        try:
+            circle = elbow_circle_at(r.robot, r.q[k])
+        except Exception:  # the arm angle's singularity: nothing to draw
+            circle = None
+        if circle is None or np.isnan(ns):
+            self.elbow.visible = False
+            return
+        frame = circle_frame(circle)
+        self.elbow.position, self.elbow.wxyz, self.elbow.visible = frame.translation, wxyz(frame.rotation), True
+        rad = circle.radius
+        self.circle.points = polyline_segments(rad * unit_circle(ns))
+        arcs = ((self.rom, r.rom[k], rad), (self.interval, r.interval[k], INTERVAL_RADIUS_SCALE * rad))
+        for handle, (lo, hi), radius in arcs:
+            points = arc(lo, hi, radius, ns)
+            handle.visible = points is not None
+            if points is not None:
+                handle.points = polyline_segments(points)
+        tip = SPOKE_RADIUS_SCALE * rad * np.array([np.cos(ns), np.sin(ns), 0.0])
+        self.spoke.points = np.array([[np.zeros(3), tip]])
+        self.marker.position = tip
+
+
+def add_obstacle(scene, name: str, obstacle: Obstacle) -> None:
+    """A keep-out volume (world frame, m) as a translucent solid."""
+    if isinstance(obstacle, Box):
+        scene.add_box(
+            name,
+            OBSTACLE,
+            dimensions=2.0 * np.asarray(obstacle.half_extents),
+            opacity=0.35,
+            position=obstacle.center,
+            wxyz=wxyz(obstacle.matrix),
+        )
+    elif isinstance(obstacle, Sphere):
+        scene.add_icosphere(name, obstacle.radius, OBSTACLE, opacity=0.35, position=obstacle.center)
+    elif isinstance(obstacle, Capsule):
+        vertices, faces = capsule_mesh(np.asarray(obstacle.a), np.asarray(obstacle.b), obstacle.radius)
+        scene.add_mesh_simple(name, vertices, faces, color=OBSTACLE, opacity=0.35)
+    else:
+        raise InputError(f"cannot draw obstacle {obstacle!r}")
+
+
+# ---------------------------------------------------------------- page, server
+def html_page(replay: Replay, fps: float = 20.0) -> str:
+    """The self-contained page that plays ``replay`` at ``fps`` frames per second (each frame the tick nearest
+    its time, :meth:`Replay.frames`)."""
+    viser = viser_module()
+    frames = replay.frames(fps)
+    with contextlib.redirect_stdout(io.StringIO()):  # viser prints its server's addresses: none here
+        server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    try:
+        view = ReplayScene(server, replay)
+        view.show(int(frames[0]))
+        recording = server.get_scene_serializer()
+        view.set_camera(server)
+        for before, k in zip(frames[:-1], frames[1:]):
+            recording.insert_sleep(float(replay.t[k] - replay.t[before]))
+            view.show(int(k))
+        return recording.as_html()
+    finally:
+        with contextlib.redirect_stdout(io.StringIO()):
+            server.stop()
+
+
+def write_html(replay: Replay, path: str | Path, fps: float = 20.0) -> Path:
+    """Write :func:`html_page` to ``path`` (atomically); returns the path."""
+    from qpnso.control.offline import atomic_write
+
+    text = html_page(replay, fps).encode()
+    return atomic_write(Path(path), lambda f: f.write(text))
+
+
+def serve(replay: Replay, host: str = "127.0.0.1", port: int = 8080, fps: float = 20.0, block: bool = True):
+    """Serve ``replay`` on ``http://host:port``: the scene, a time slider (s), play, speed and the legend.  With
+    ``block`` it plays until Ctrl+C, then stops the server; otherwise it returns ``(server, view, player)``,
+    ``player`` a :class:`Player` the caller stops."""
+    viser = viser_module()
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    view = ReplayScene(server, replay)
+    view.set_camera(server)
+    player = Player(server, view, fps)
+    if not block:
+        return server, view, player
+    print(f"qpnso view: {replay.title}: http://{host}:{server.get_port()} (Ctrl+C stops)", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        player.stop()
+        server.stop()
+    return None
+
+
+class Player:
+    """The live server's controls: a time slider (s), play and speed, and a thread that advances the slider
+    at ``fps`` frames per second while playing."""
+
+    def __init__(self, server, view: ReplayScene, fps: float) -> None:
+        r = view.replay
+        self.fps, self.view = fps, view
+        gui = server.gui
+        gui.add_markdown(f"**{r.title}**\n\n{LEGEND}")
+        self.time = gui.add_slider(
+            "t (s)", min=float(r.t[0]), max=float(r.t[-1]), step=max(1.0 / fps, 1e-3), initial_value=float(r.t[0])
+        )
+        self.playing = gui.add_checkbox("play", initial_value=False)
+        self.speed = gui.add_dropdown("speed", ("0.25", "0.5", "1", "2", "4"), initial_value="1")
+        self.time.on_update(lambda _: view.show(r.at(self.time.value)))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        r = self.view.replay
+        while not self._stop.wait(1.0 / self.fps):
+            if self.playing.value:
+                t = self.time.value + float(self.speed.value) / self.fps
+                self.time.value = float(r.t[0]) if t > r.t[-1] else t
+
+    def stop(self) -> None:
+        """Stop advancing the slider."""
+        self._stop.set()
+        self._thread.join()
+
+
+LEGEND = (
+    "arm: link capsules (orange); tool path: recorded (red), reference (black); elbow circle (grey) with "
+    "ROM_t (blue) and the continuity interval (green, outside); the arm angle: spoke and ball (black); "
+    "keep-out volumes (translucent red)."
+)

@@ -1,0 +1,338 @@
+"""The 3-D replay (qpnso.view): the scene's transforms against Pinocchio's forward kinematics, read back from the
+written page itself; the elbow circle against the arm angle; the result file's scene record; the live server;
+the command line; and the page in a real headless Chromium (skipped where none is installed).
+
+Run the browser test on a machine with Debian's Chromium (``apt-get install chromium``):
+``python -m pytest tests/test_view.py -k chromium -rP`` prints where the screenshot is.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import re
+import shutil
+import subprocess
+import urllib.request
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from conftest import SRS_ROBOTS, reference_arm_angle
+
+import qpnso
+from qpnso.cli import main
+from qpnso.elbow.arm_angle import elbow_circle, elbow_points
+from qpnso.errors import InputError
+from qpnso.model.collision import link_capsules
+from qpnso.model.robot import load_robot_spec, robot_spec
+
+viser = pytest.importorskip("viser")
+zstandard = pytest.importorskip("zstandard")
+msgspec = pytest.importorskip("msgspec")
+
+from qpnso.view import Replay, load_replay  # noqa: E402
+from qpnso.view.scene import SPOKE_RADIUS_SCALE, free_port, html_page, serve, write_html  # noqa: E402
+
+
+# ------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def run():
+    """A short hands-on run of the microscope scenario (scenario B with a box): 1.2 s of the plant."""
+    from qpnso.lab.scenarios import simulate_scenario
+
+    return simulate_scenario("microscope", "qp", 1.2 / 36.14)
+
+
+@pytest.fixture(scope="module")
+def result_file(run, tmp_path_factory) -> Path:
+    return run.save(tmp_path_factory.mktemp("view") / "result.npz")
+
+
+@pytest.fixture(scope="module")
+def page(result_file) -> tuple[Replay, str]:
+    replay = load_replay(result_file)
+    return replay, html_page(replay, fps=20.0)
+
+
+def recording(html: str) -> tuple[dict, list[np.ndarray]]:
+    """The recording embedded in a page (viser's format: zstd of msgpack and aligned binary buffers), decoded
+    here without viser: the message list and the binary buffers."""
+    match = re.search(r'window\.__VISER_EMBED_DATA__="([^"]*)"', html)
+    assert match, "the page embeds no recording"
+    raw = base64.b64decode(match.group(1))
+    inner = zstandard.ZstdDecompressor().decompress(raw[8:], max_output_size=int.from_bytes(raw[:8], "little"))
+    n = int.from_bytes(inner[:8], "little")
+    record = msgspec.msgpack.decode(inner[8 : 8 + n])
+    buffers, at = [], 8 + n
+    for length in record["binaryBufferLengths"]:
+        at = (at + 7) // 8 * 8  # aligned to 8 bytes
+        buffers.append(inner[at : at + length])
+        at += length
+    return record, buffers
+
+
+def states(record: dict) -> list[tuple[float, dict]]:
+    """The scene after each recorded instant: ``(time, {node: {"position", "wxyz", "visible", "props"}})``, the
+    messages applied in order; one entry per distinct time (the state once all its messages are applied)."""
+    out: list[tuple[float, dict]] = []
+    nodes: dict[str, dict] = {}
+    for t, m in record["messages"]:
+        if out and t != out[-1][0]:
+            out[-1] = (out[-1][0], {k: dict(v) for k, v in nodes.items()})
+        name = m.get("name")
+        node = nodes.setdefault(name, {"position": np.zeros(3), "wxyz": np.array([1.0, 0, 0, 0]), "props": {}})
+        if m["type"] == "SetPositionMessage":
+            node["position"] = np.array(m["position"])
+        elif m["type"] == "SetOrientationMessage":
+            node["wxyz"] = np.array(m["wxyz"])
+        elif m["type"] == "SetSceneNodeVisibilityMessage":
+            node["visible"] = m["visible"]
+        elif m["type"] == "SceneNodeUpdateMessage":
+            node["props"] = {**node["props"], **m["updates"]}
+        elif "props" in m:
+            node["props"] = dict(m["props"])
+            node["type"] = m["type"]
+        if not out or t != out[-1][0]:
+            out.append((t, {}))
+    out[-1] = (out[-1][0], {k: dict(v) for k, v in nodes.items()})
+    return out
+
+
+def world(nodes: dict, name: str) -> pin.SE3:
+    """A node's world pose: its parents' poses composed (viser's scene tree, names ``/a/b/c``)."""
+    pose = pin.SE3.Identity()
+    parts = name.strip("/").split("/")
+    for k in range(1, len(parts) + 1):
+        node = nodes.get("/" + "/".join(parts[:k]))
+        if node is None:
+            continue
+        w, x, y, z = node["wxyz"]
+        pose = pose * pin.SE3(pin.Quaternion(w, x, y, z).normalized().matrix(), node["position"])
+    return pose
+
+
+def array(buffers: list, ref: dict) -> np.ndarray:
+    """A binary placeholder of a message's props as an array."""
+    return np.frombuffer(buffers[ref["__binary_index"]], dtype=ref["dtype"])
+
+
+# -------------------------------------------------------------- the geometry
+@pytest.mark.parametrize("name", SRS_ROBOTS)
+def test_elbow_circle_at_the_arm_angle_is_the_elbow(robots, rng, name):
+    """[E 2]–[E 4] read backwards: the circle's point at the arm angle (computed independently, conftest) is
+    Pinocchio's elbow; every point of the circle is as far from the shoulder as the elbow and turns about
+    the shoulder–wrist axis."""
+    robot = robots[name]
+    pts = elbow_points(robot)
+    for _ in range(50):
+        q = rng.uniform(robot.q_min, robot.q_max)
+        pin.forwardKinematics(robot.model, robot.data, q)
+        ps, pe, pw = pts.world(robot.data)
+        circle = elbow_circle(ps, pe, pw)
+        assert np.linalg.norm(circle.point(reference_arm_angle(robot, q)) - pe) < 1e-12
+        ring = circle.point(np.linspace(-np.pi, np.pi, 13))
+        assert np.allclose(np.linalg.norm(ring - ps, axis=1), np.linalg.norm(pe - ps), atol=1e-12)
+        assert np.allclose((ring - circle.centre) @ (pw - ps), 0.0, atol=1e-12)
+
+
+def test_robot_spec_loads_the_same_kinematics(rng):
+    """A robot record gives back the tool frame (with a rotated offset) to round-off."""
+    offset = pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 0.3), np.array([0.01, -0.02, 0.15]))
+    robot = qpnso.load_robot("iiwa14", tool_offset=offset)
+    again = load_robot_spec(robot_spec(robot))
+    for _ in range(5):
+        q = rng.uniform(robot.q_min, robot.q_max)
+        assert np.allclose(again.tool_pose(q).homogeneous, robot.tool_pose(q).homogeneous, atol=1e-14)
+    with pytest.raises(qpnso.ModelError, match="not a robot record"):
+        load_robot_spec({"robot": "lwr4p"})
+
+
+# ------------------------------------------------------------ the result file
+def test_result_file_records_robot_and_room(run, result_file):
+    """The saved run says which robot ran it and which keep-out volumes were in the room."""
+    replay = load_replay(result_file)
+    assert replay.robot.name == "lwr4p"
+    assert [o.to_dict() for o in replay.obstacles] == run.scene["obstacles"] and len(replay.obstacles) == 1
+    assert run.scene["known_obstacles"] == 1
+    assert np.array_equal(replay.q, run.arrays["q"])
+
+
+def test_old_result_file_needs_the_robot(run, tmp_path, lwr):
+    """A file without the scene record: refused by name unless the robot is given."""
+    path = replace(run, scene={}).save(tmp_path / "old.npz")
+    with pytest.raises(InputError, match="--robot"):
+        load_replay(path)
+    assert load_replay(path, lwr).obstacles == ()
+
+
+def test_replay_refuses_bad_arrays(run, lwr, iiwa=None):
+    """Wrong joint count, a NaN configuration, a time axis that goes back: each named."""
+    arrays = dict(run.arrays)
+    with pytest.raises(InputError, match=r"q has shape"):
+        Replay.of({**arrays, "q": arrays["q"][:, :6]}, lwr)
+    q = arrays["q"].copy()
+    q[7, 2] = np.nan
+    with pytest.raises(InputError, match="q at tick 7"):
+        Replay.of({**arrays, "q": q}, lwr)
+    t = arrays["t"].copy()
+    t[3] = t[2]
+    with pytest.raises(InputError, match="increasing"):
+        Replay.of({**arrays, "t": t}, lwr)
+
+
+def test_frames_sample_the_run_at_the_frame_rate(run, lwr):
+    replay = Replay.of(run.arrays, lwr)
+    frames = replay.frames(20.0)
+    assert frames[0] == 0 and frames[-1] == len(replay.t) - 1
+    assert np.allclose(np.diff(replay.t[frames])[:-1], 0.05, atol=1e-9)
+    with pytest.raises(InputError, match="positive"):
+        replay.frames(0.0)
+
+
+# ------------------------------------------------------------------- the page
+def test_page_link_poses_are_pinocchio_forward_kinematics(page):
+    """Every frame of the page: each joint frame's world pose equals Pinocchio's oMi at the recorded q of the
+    tick shown, and every vertex of every link capsule lies on that capsule (its radius from the axis that
+    LinkCapsules gives at that q); the recording lasts as long as the frames it shows."""
+    replay, html = page
+    record, buffers = recording(html)
+    frames = replay.frames(20.0)
+    shown = states(record)
+    assert len(shown) == len(frames)
+    assert record["durationSeconds"] == pytest.approx(replay.t[frames[-1]] - replay.t[frames[0]], abs=1e-9)
+    robot = replay.robot
+    caps = link_capsules(robot)
+    model, data = robot.model, robot.model.createData()
+    for (t, nodes), k in zip(shown, frames):
+        assert t == pytest.approx(replay.t[k] - replay.t[frames[0]], abs=1e-9)
+        pin.forwardKinematics(model, data, replay.q[k])
+        for j in range(1, model.njoints):
+            pose = world(nodes, f"/arm/joint_{j}")
+            assert np.allclose(pose.homogeneous, data.oMi[j].homogeneous, atol=1e-12), (k, j)
+        a, b = caps.segments(robot, replay.q[k])
+        meshes = [n for n in nodes if "/capsule_" in str(n)]
+        assert len(meshes) == caps.count
+        for name in meshes:
+            i = int(name.rsplit("_", 1)[1])
+            vertices = array(buffers, nodes[name]["props"]["vertices"]).reshape(-1, 3).astype(float)
+            pose = world(nodes, name)
+            v = vertices @ pose.rotation.T + pose.translation
+            s = np.clip((v - a[i]) @ (b[i] - a[i]) / np.dot(b[i] - a[i], b[i] - a[i]), 0.0, 1.0)
+            dist = np.linalg.norm(v - (a[i] + s[:, None] * (b[i] - a[i])), axis=1)
+            assert np.allclose(dist, caps.radius[i], atol=2e-5), (k, name)
+
+
+def test_page_elbow_marker_is_at_the_recorded_arm_angle(page):
+    """The ball of the arm angle lies on the spoke from the circle's centre through Pinocchio's elbow (the LWR4+
+    is S-R-S, so the recorded arm angle's point is the elbow), at SPOKE_RADIUS_SCALE radii."""
+    replay, html = page
+    record, _ = recording(html)
+    robot, data = replay.robot, replay.robot.model.createData()
+    pts = elbow_points(robot)
+    for (_, nodes), k in zip(states(record), replay.frames(20.0)):
+        pin.forwardKinematics(robot.model, data, replay.q[k])
+        ps, pe, pw = pts.world(data)
+        centre = world(nodes, "/elbow").translation
+        ball = world(nodes, "/elbow/arm_angle").translation
+        assert np.allclose(ball, centre + SPOKE_RADIUS_SCALE * (pe - centre), atol=1e-9), k
+
+
+def test_page_draws_the_room_and_paths(page):
+    """The box of the room, the recorded tool path and its reference, in world coordinates."""
+    replay, html = page
+    record, buffers = recording(html)
+    nodes = states(record)[-1][1]
+    box = replay.obstacles[0]
+    assert np.allclose(world(nodes, "/obstacles/0").translation, box.center)
+    assert np.allclose(nodes["/obstacles/0"]["props"]["dimensions"], 2 * np.array(box.half_extents))
+    for name, path in (("tool", replay.tool), ("reference", replay.ref)):
+        points = array(buffers, nodes[f"/paths/{name}"]["props"]["points"]).reshape(-1, 2, 3)
+        assert np.allclose(points[0, 0], path[0], atol=1e-6) and np.allclose(points[-1, 1], path[-1], atol=1e-6)
+
+
+def test_page_is_one_file_with_no_address_to_fetch(page, tmp_path):
+    """No script, style or image is loaded from elsewhere; the page is written where asked."""
+    replay, html = page
+    assert not re.search(r"""<(script|link|img)[^>]+(src|href)=["']?(https?:)?//""", html)
+    path = write_html(replay, tmp_path / "run.html", fps=5.0)
+    assert path.read_text().startswith("<!doctype html>")
+
+
+# --------------------------------------------------------------- live server
+def test_server_serves_the_client_and_plays(result_file):
+    """The live server answers with viser's client, and playing advances the time slider and the scene."""
+    replay = load_replay(result_file)
+    port = free_port()
+    server, view, player = serve(replay, port=port, fps=50.0, block=False)
+    try:
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10).read().decode()
+        assert "<html" in page.lower()
+        player.playing.value = True
+        for _ in range(100):
+            if view.shown > 0:
+                break
+            player._stop.wait(0.05)
+        assert view.shown > 0 and player.time.value > replay.t[0]
+        player.time.value = float(replay.t[-1])
+        assert view.shown == len(replay.t) - 1
+    finally:
+        player.stop()
+        server.stop()
+
+
+# ----------------------------------------------------------- command line
+def test_cli_view_writes_a_page(result_file, tmp_path, capsys):
+    out = tmp_path / "run.html"
+    assert main(["view", str(result_file), "--html", str(out), "--fps", "10"]) == 0
+    assert "frames" in capsys.readouterr().out and out.stat().st_size > 100_000
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["view"], "not both"),
+        (["view", "x.npz", "--scenario", "B"], "not both"),
+        (["view", "nowhere.npz", "--html", "o.html"], "not found"),
+        (["view", "x.npz", "--fps", "0"], "--fps"),
+    ],
+)
+def test_cli_view_refuses_bad_input(argv, message, capsys):
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_cli_view_without_viser_says_how_to_install(monkeypatch, result_file, capsys):
+    monkeypatch.setitem(__import__("sys").modules, "viser", None)
+    assert main(["view", str(result_file), "--html", "x.html"]) == 2
+    assert "pip install 'qpnso[view]'" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------ real browser
+CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (apt-get install chromium)")
+def test_page_of_scenario_b_opens_in_chromium_without_network(tmp_path):
+    """A scenario B run's page, opened from a file in headless Chromium with every network address refused,
+    draws the arm: the screenshot (its path printed) has at least 2000 pixels of the arm's orange."""
+    from qpnso.view import scenario_replay
+
+    replay = scenario_replay("B", "qp", 2.0 / 36.14)
+    page = write_html(replay, tmp_path / "B.html")
+    out = Path(os.environ.get("QPNSO_TEST_OUTPUT", tmp_path)) / "view_scenario_B.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    offline = ["--proxy-server=127.0.0.1:9", "--host-resolver-rules=MAP * ~NOTFOUND", "--disable-background-networking"]
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--use-angle=swiftshader"]
+    flags += ["--no-first-run", "--disable-component-update", "--disable-sync", f"--user-data-dir={tmp_path / 'u'}"]
+    flags += ["--window-size=640,480", "--virtual-time-budget=2000", f"--screenshot={out}"]
+    subprocess.run([CHROMIUM, *flags, *offline, page.as_uri()], capture_output=True, timeout=240, check=False)
+    assert out.is_file(), "Chromium wrote no screenshot"
+    import matplotlib.image
+
+    r, g, b = np.moveaxis((matplotlib.image.imread(out)[..., :3] * 255).astype(int), -1, 0)
+    orange = (r > 150) & (r - g > 50) & (g - b > 30)  # the arm's orange, lit or shaded; not the red box or paths
+    print(f"screenshot: {out} ({int(orange.sum())} pixels of the arm's colour)")
+    assert orange.sum() > 2000

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import SRS_ROBOTS, reference_arm_angle
+from conftest import ALL_ROBOTS, SRS_ROBOTS, reference_arm_angle
 
 import qpnso
 from qpnso.cli import main
@@ -34,7 +34,7 @@ zstandard = pytest.importorskip("zstandard")
 msgspec = pytest.importorskip("msgspec")
 
 from qpnso.view import Replay, load_replay  # noqa: E402
-from qpnso.view.scene import SPOKE_RADIUS_SCALE, free_port, html_page, serve, write_html  # noqa: E402
+from qpnso.view.scene import INTERVAL_OFFSET_M, free_port, html_page, serve, write_html  # noqa: E402
 
 
 # ------------------------------------------------------------------ fixtures
@@ -193,13 +193,12 @@ def test_frames_sample_the_run_at_the_frame_rate(run, lwr):
 
 
 # ------------------------------------------------------------------- the page
-def test_page_link_poses_are_pinocchio_forward_kinematics(page):
+def assert_links_are_forward_kinematics(replay: Replay, html: str, fps: float) -> None:
     """Every frame of the page: each joint frame's world pose equals Pinocchio's oMi at the recorded q of the
     tick shown, and every vertex of every link capsule lies on that capsule (its radius from the axis that
     LinkCapsules gives at that q); the recording lasts as long as the frames it shows."""
-    replay, html = page
     record, buffers = recording(html)
-    frames = replay.frames(20.0)
+    frames = replay.frames(fps)
     shown = states(record)
     assert len(shown) == len(frames)
     assert record["durationSeconds"] == pytest.approx(replay.t[frames[-1]] - replay.t[frames[0]], abs=1e-9)
@@ -225,9 +224,30 @@ def test_page_link_poses_are_pinocchio_forward_kinematics(page):
             assert np.allclose(dist, caps.radius[i], atol=2e-5), (k, name)
 
 
+def test_page_link_poses_are_pinocchio_forward_kinematics(page):
+    """The LWR4+'s hands-on run, read back from its page."""
+    replay, html = page
+    assert_links_are_forward_kinematics(replay, html, 20.0)
+
+
+@pytest.mark.parametrize("name", ALL_ROBOTS[1:])
+def test_page_link_poses_of_other_arms(robots, name, rng):
+    """The iiwa (and the Panda, where installed): a straight joint-space path between two configurations."""
+    robot = robots[name]
+    a, b = robot.sample_configuration(), rng.uniform(robot.q_min, robot.q_max)
+    q = a + np.linspace(0.0, 1.0, 40)[:, None] * (b - a)
+    ns = np.array([qpnso.arm_angle_status(robot, x).value for x in q])
+    n = len(q)
+    arrays = {"t": 0.01 * np.arange(n), "q": q, "ns": ns, "rom_lo": ns - 0.3, "rom_hi": ns + 0.3}
+    arrays |= {"interval_lo": np.full(n, -np.inf), "interval_hi": np.full(n, np.nan)}
+    arrays |= {"tool_position": np.zeros((n, 3)), "ref_position": np.zeros((n, 3))}
+    replay = Replay.of(arrays, robot)
+    assert_links_are_forward_kinematics(replay, html_page(replay, fps=25.0), 25.0)
+
+
 def test_page_elbow_marker_is_at_the_recorded_arm_angle(page):
     """The ball of the arm angle lies on the spoke from the circle's centre through Pinocchio's elbow (the LWR4+
-    is S-R-S, so the recorded arm angle's point is the elbow), at SPOKE_RADIUS_SCALE radii."""
+    is S-R-S, so the recorded arm angle's point is the elbow), INTERVAL_OFFSET_M beyond the circle."""
     replay, html = page
     record, _ = recording(html)
     robot, data = replay.robot, replay.robot.model.createData()
@@ -237,7 +257,8 @@ def test_page_elbow_marker_is_at_the_recorded_arm_angle(page):
         ps, pe, pw = pts.world(data)
         centre = world(nodes, "/elbow").translation
         ball = world(nodes, "/elbow/arm_angle").translation
-        assert np.allclose(ball, centre + SPOKE_RADIUS_SCALE * (pe - centre), atol=1e-9), k
+        radius = np.linalg.norm(pe - centre)
+        assert np.allclose(ball, centre + (1 + INTERVAL_OFFSET_M / radius) * (pe - centre), atol=1e-9), k
 
 
 def test_page_draws_the_room_and_paths(page):
@@ -327,8 +348,8 @@ def test_page_of_scenario_b_opens_in_chromium_without_network(tmp_path):
     offline = ["--proxy-server=127.0.0.1:9", "--host-resolver-rules=MAP * ~NOTFOUND", "--disable-background-networking"]
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--use-angle=swiftshader"]
     flags += ["--no-first-run", "--disable-component-update", "--disable-sync", f"--user-data-dir={tmp_path / 'u'}"]
-    flags += ["--window-size=640,480", "--virtual-time-budget=2000", f"--screenshot={out}"]
-    subprocess.run([CHROMIUM, *flags, *offline, page.as_uri()], capture_output=True, timeout=240, check=False)
+    flags += ["--window-size=640,480", "--virtual-time-budget=500", f"--screenshot={out}"]
+    subprocess.run([CHROMIUM, *flags, *offline, page.as_uri()], capture_output=True, timeout=120, check=False)
     assert out.is_file(), "Chromium wrote no screenshot"
     import matplotlib.image
 

@@ -6,8 +6,10 @@ The scene (names are viser's scene-tree paths):
   (:func:`~qpnso.view.geometry.capsule_shapes`) are its children, the tool frame a child of its joint;
 * ``/paths/tool`` (red) and ``/paths/reference`` (black): the tool point's recorded path and its reference;
 * ``/elbow``: the elbow circle's frame (:func:`~qpnso.view.geometry.circle_frame`), with the circle (grey),
-  ROM_t (blue, on the circle), the continuity interval (green, 10 % outside it), the spoke from the centre
-  through the elbow at the recorded arm angle, a ball at its end (black); hidden where the arm angle is undefined;
+  ROM_t (blue) and the continuity interval (green) as arcs outside it (:data:`ROM_OFFSET_M`,
+  :data:`INTERVAL_OFFSET_M`: clear of the arm's capsules), the spoke from the centre through the elbow at the
+  recorded arm angle out to the interval's arc, a ball at its end (black); hidden where the arm angle is
+  undefined;
 * ``/obstacles/k``: the room's keep-out volumes (translucent red).
 
 :func:`write_html` records the shown ticks at a frame rate into viser's scene serializer and writes its
@@ -51,11 +53,10 @@ INTERVAL = (40, 170, 60)
 ELBOW = (20, 20, 20)
 OBSTACLE = (220, 40, 40)
 
-INTERVAL_RADIUS_SCALE = 1.1
-"""The continuity interval is drawn this much outside the circle, so that ROM_t (on it) stays visible."""
-SPOKE_RADIUS_SCALE = 1.25
-"""The arm angle's spoke runs from the circle's centre through the elbow to this many radii, its ball at the end
-(outside the arm's capsules)."""
+ROM_OFFSET_M = 0.10
+"""ROM_t's arc is drawn this far (m) outside the elbow circle, clear of the upper arm's capsule."""
+INTERVAL_OFFSET_M = 0.16
+"""The continuity interval's arc, and the ball of the arm angle's spoke, this far (m) outside the circle."""
 PATH_POINTS_MAX = 4000
 """At most this many points of the tool's path and of its reference are drawn."""
 
@@ -180,13 +181,13 @@ class ReplayScene:
         self.elbow.position, self.elbow.wxyz, self.elbow.visible = frame.translation, wxyz(frame.rotation), True
         rad = circle.radius
         self.circle.points = polyline_segments(rad * unit_circle(ns))
-        arcs = ((self.rom, r.rom[k], rad), (self.interval, r.interval[k], INTERVAL_RADIUS_SCALE * rad))
+        arcs = ((self.rom, r.rom[k], rad + ROM_OFFSET_M), (self.interval, r.interval[k], rad + INTERVAL_OFFSET_M))
         for handle, (lo, hi), radius in arcs:
             points = arc(lo, hi, radius, ns)
             handle.visible = points is not None
             if points is not None:
                 handle.points = polyline_segments(points)
-        tip = SPOKE_RADIUS_SCALE * rad * np.array([np.cos(ns), np.sin(ns), 0.0])
+        tip = (rad + INTERVAL_OFFSET_M) * np.array([np.cos(ns), np.sin(ns), 0.0])
         self.spoke.points = np.array([[np.zeros(3), tip]])
         self.marker.position = tip
 
@@ -298,6 +299,7 @@ class Player:
 
 LEGEND = (
     "arm: link capsules (orange); tool path: recorded (red), reference (black); elbow circle (grey) with "
-    "ROM_t (blue) and the continuity interval (green, outside); the arm angle: spoke and ball (black); "
+    "ROM_t (blue, 10 cm outside) and the continuity interval (green, 16 cm outside); the arm angle: spoke "
+    "through the elbow and ball (black); "
     "keep-out volumes (translucent red)."
 )

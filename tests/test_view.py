@@ -261,6 +261,19 @@ def test_page_elbow_marker_is_at_the_recorded_arm_angle(page):
         assert np.allclose(ball, centre + (1 + INTERVAL_OFFSET_M / radius) * (pe - centre), atol=1e-9), k
 
 
+def test_page_hides_the_elbow_where_the_arm_angle_is_undefined(lwr):
+    """The arm straight up (the wrist on the vertical through the shoulder: no circle) and a tick whose recorded
+    arm angle is NaN: the elbow's drawing is hidden there and shown again after."""
+    q = np.tile(lwr.sample_configuration(), (3, 1))
+    q[0] = 0.0
+    ns = np.array([0.0, np.nan, qpnso.arm_angle(lwr, q[2])])
+    arrays = {"t": np.array([0.0, 0.1, 0.2]), "q": q, "ns": ns, "rom_lo": ns - 0.2, "rom_hi": ns + 0.2}
+    arrays |= {"interval_lo": ns - 1.0, "interval_hi": ns + 1.0, "tool_position": np.zeros((3, 3))}
+    arrays |= {"ref_position": np.zeros((3, 3))}
+    record, _ = recording(html_page(Replay.of(arrays, lwr), fps=10.0))
+    assert [nodes["/elbow"]["visible"] for _, nodes in states(record)] == [False, False, True]
+
+
 def test_page_draws_the_room_and_paths(page):
     """The box of the room, the recorded tool path and its reference, in world coordinates."""
     replay, html = page
@@ -338,7 +351,7 @@ CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (apt-get install chromium)")
 def test_page_of_scenario_b_opens_in_chromium_without_network(tmp_path):
     """A scenario B run's page, opened from a file in headless Chromium with every network address refused,
-    draws the arm: the screenshot (its path printed) has at least 2000 pixels of the arm's orange."""
+    draws the arm: the screenshot (its path printed) has at least 1000 pixels of the arm's orange."""
     from qpnso.view import scenario_replay
 
     replay = scenario_replay("B", "qp", 2.0 / 36.14)
@@ -348,12 +361,13 @@ def test_page_of_scenario_b_opens_in_chromium_without_network(tmp_path):
     offline = ["--proxy-server=127.0.0.1:9", "--host-resolver-rules=MAP * ~NOTFOUND", "--disable-background-networking"]
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--use-angle=swiftshader"]
     flags += ["--no-first-run", "--disable-component-update", "--disable-sync", f"--user-data-dir={tmp_path / 'u'}"]
-    flags += ["--window-size=640,480", "--virtual-time-budget=500", f"--screenshot={out}"]
+    flags += ["--window-size=480,360", "--virtual-time-budget=300", f"--screenshot={out}"]
     subprocess.run([CHROMIUM, *flags, *offline, page.as_uri()], capture_output=True, timeout=120, check=False)
     assert out.is_file(), "Chromium wrote no screenshot"
     import matplotlib.image
 
     r, g, b = np.moveaxis((matplotlib.image.imread(out)[..., :3] * 255).astype(int), -1, 0)
     orange = (r > 150) & (r - g > 50) & (g - b > 30)  # the arm's orange, lit or shaded; not the red box or paths
+    orange[:, :30] = False  # viser's notice of software WebGL has an orange stripe along the left edge
     print(f"screenshot: {out} ({int(orange.sum())} pixels of the arm's colour)")
-    assert orange.sum() > 2000
+    assert orange.sum() > 1000

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from qpnso.errors import InputError
+from qpnso.errors import InputError, SingularityError
 from qpnso.model.obstacles import Box, Capsule, Obstacle, Sphere
 from qpnso.view.geometry import (
     arc,
@@ -110,6 +110,7 @@ class ReplayScene:
         self._add_obstacles()
         self._add_elbow()
         self.shown = -1
+        self._lock = threading.Lock()  # the player's thread and viser's event thread both move the scene
         self.show(0)
 
     # ------------------------------------------------------------ static parts
@@ -159,20 +160,20 @@ class ReplayScene:
     # ------------------------------------------------------------------ motion
     def show(self, k: int) -> None:
         """Move the scene to tick ``k``: the joints' frames, the elbow circle, ROM_t, the interval, the arm angle."""
-        r = self.replay
-        q = r.q[k]
-        for node, placement in zip(self.joints, joint_placements(r.robot, q)):
-            node.position = placement.translation
-            node.wxyz = wxyz(placement.rotation)
-        self._show_elbow(k)
-        self.shown = k
+        with self._lock:
+            r = self.replay
+            for node, placement in zip(self.joints, joint_placements(r.robot, r.q[k])):
+                node.position = placement.translation
+                node.wxyz = wxyz(placement.rotation)
+            self._show_elbow(k)
+            self.shown = k
 
     def _show_elbow(self, k: int) -> None:
         r = self.replay
         ns = float(r.ns[k])
         try:
             circle = elbow_circle_at(r.robot, r.q[k])
-        except Exception:  # the arm angle's singularity: nothing to draw
+        except SingularityError:  # the wrist on the vertical through the shoulder: no circle to draw
             circle = None
         if circle is None or np.isnan(ns):
             self.elbow.visible = False

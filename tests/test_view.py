@@ -193,9 +193,15 @@ def test_frames_sample_the_run_at_the_frame_rate(run, lwr):
 
 
 # ------------------------------------------------------------------- the page
+VISER_SKIP = 2e-5
+"""viser sends a node's new position or orientation only when it is not ``np.allclose`` to the last one sent
+(relative 1e-5, absolute 1e-8): a shown pose may lag Pinocchio's by that much (m within 2 m of the base,
+quaternion entries).  Measured on the 36 s guidance solve: 3.8e-6 at worst."""
+
+
 def assert_links_are_forward_kinematics(replay: Replay, html: str, fps: float) -> None:
     """Every frame of the page: each joint frame's world pose equals Pinocchio's oMi at the recorded q of the
-    tick shown, and every vertex of every link capsule lies on that capsule (its radius from the axis that
+    tick shown (to :data:`VISER_SKIP`), and every vertex of every link capsule lies on that capsule (its radius from the axis that
     LinkCapsules gives at that q); the recording lasts as long as the frames it shows."""
     record, buffers = recording(html)
     frames = replay.frames(fps)
@@ -210,7 +216,7 @@ def assert_links_are_forward_kinematics(replay: Replay, html: str, fps: float) -
         pin.forwardKinematics(model, data, replay.q[k])
         for j in range(1, model.njoints):
             pose = world(nodes, f"/arm/joint_{j}")
-            assert np.allclose(pose.homogeneous, data.oMi[j].homogeneous, atol=1e-12), (k, j)
+            assert np.allclose(pose.homogeneous, data.oMi[j].homogeneous, rtol=0, atol=VISER_SKIP), (k, j)
         a, b = caps.segments(robot, replay.q[k])
         meshes = [n for n in nodes if "/capsule_" in str(n)]
         assert len(meshes) == caps.count
@@ -221,7 +227,7 @@ def assert_links_are_forward_kinematics(replay: Replay, html: str, fps: float) -
             v = vertices @ pose.rotation.T + pose.translation
             s = np.clip((v - a[i]) @ (b[i] - a[i]) / np.dot(b[i] - a[i], b[i] - a[i]), 0.0, 1.0)
             dist = np.linalg.norm(v - (a[i] + s[:, None] * (b[i] - a[i])), axis=1)
-            assert np.allclose(dist, caps.radius[i], atol=2e-5), (k, name)
+            assert np.allclose(dist, caps.radius[i], atol=VISER_SKIP + 1e-5), (k, name)  # vertices in float32
 
 
 def test_page_link_poses_are_pinocchio_forward_kinematics(page):
@@ -258,7 +264,7 @@ def test_page_elbow_marker_is_at_the_recorded_arm_angle(page):
         centre = world(nodes, "/elbow").translation
         ball = world(nodes, "/elbow/arm_angle").translation
         radius = np.linalg.norm(pe - centre)
-        assert np.allclose(ball, centre + (1 + INTERVAL_OFFSET_M / radius) * (pe - centre), atol=1e-9), k
+        assert np.allclose(ball, centre + (1 + INTERVAL_OFFSET_M / radius) * (pe - centre), atol=VISER_SKIP), k
 
 
 def test_page_hides_the_elbow_where_the_arm_angle_is_undefined(lwr):

@@ -34,6 +34,7 @@ zstandard = pytest.importorskip("zstandard")
 msgspec = pytest.importorskip("msgspec")
 
 from qpnso.view import Replay, load_replay  # noqa: E402
+from qpnso.view.geometry import arc  # noqa: E402
 from qpnso.view.scene import INTERVAL_OFFSET_M, free_port, html_page, serve, write_html  # noqa: E402
 
 
@@ -138,6 +139,17 @@ def test_elbow_circle_at_the_arm_angle_is_the_elbow(robots, rng, name):
         assert np.allclose((ring - circle.centre) @ (pw - ps), 0.0, atol=1e-12)
 
 
+def test_arcs_are_cut_half_a_turn_around_the_arm_angle():
+    """An unbounded interval is the whole circle around the arm angle; an arc beyond half a turn, reversed or
+    unknown is not drawn; every point is at the radius, in the circle's plane."""
+    whole = arc(-np.inf, np.inf, 0.3, 1.0)
+    angles = np.arctan2(whole[:, 1], whole[:, 0])
+    assert np.allclose(np.linalg.norm(whole[:, :2], axis=1), 0.3) and np.all(whole[:, 2] == 0)
+    assert np.allclose(whole[0], whole[-1]) and np.isclose(angles[0], 1.0 - np.pi)
+    assert np.allclose(arc(0.2, 0.5, 1.0, 0.0)[[0, -1], :2], [[np.cos(0.2), np.sin(0.2)], [np.cos(0.5), np.sin(0.5)]])
+    assert arc(3.5, 4.0, 1.0, 0.0) is None and arc(0.5, 0.2, 1.0, 0.0) is None and arc(np.nan, 1.0, 1.0, 0.0) is None
+
+
 def test_robot_spec_loads_the_same_kinematics(rng):
     """A robot record gives back the tool frame (with a rotated offset) to round-off."""
     offset = pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 0.3), np.array([0.01, -0.02, 0.15]))
@@ -201,8 +213,8 @@ quaternion entries).  Measured on the 36 s guidance solve: 3.8e-6 at worst."""
 
 def assert_links_are_forward_kinematics(replay: Replay, html: str, fps: float) -> None:
     """Every frame of the page: each joint frame's world pose equals Pinocchio's oMi at the recorded q of the
-    tick shown (to :data:`VISER_SKIP`), and every vertex of every link capsule lies on that capsule (its radius from the axis that
-    LinkCapsules gives at that q); the recording lasts as long as the frames it shows."""
+    tick shown (to :data:`VISER_SKIP`), and every vertex of every link capsule lies on that capsule (its radius
+    from the axis that LinkCapsules gives at that q); the recording lasts as long as the frames it shows."""
     record, buffers = recording(html)
     frames = replay.frames(fps)
     shown = states(record)
@@ -337,6 +349,9 @@ def test_cli_view_writes_a_page(result_file, tmp_path, capsys):
         (["view", "x.npz", "--scenario", "B"], "not both"),
         (["view", "nowhere.npz", "--html", "o.html"], "not found"),
         (["view", "x.npz", "--fps", "0"], "--fps"),
+        (["view", "x.npz", "--strategy", "qp", "--ignore-obstacles"], "--strategy, --ignore-obstacles do not apply"),
+        (["view", "--scenario", "B", "--robot", "iiwa14"], "--robot do not apply to a scenario"),
+        (["view", "--scenario", "B", "--duration-scale", "-1"], "--duration-scale"),
     ],
 )
 def test_cli_view_refuses_bad_input(argv, message, capsys):

@@ -133,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("result", nargs="?", default=None, help="a result.npz (of qpnso solve or simulate)")
     p.add_argument("--scenario", default=None, help="instead of a file: simulate a scenario (A, B, microscope, .toml)")
     p.add_argument("--strategy", default=None, help="with --scenario: the strategy (default: the scenario's, qp)")
-    p.add_argument("--duration-scale", type=float, default=1.0, help="with --scenario: run only this fraction")
+    p.add_argument("--duration-scale", type=float, default=None, help="with --scenario: run only this fraction")
     p.add_argument("--ignore-obstacles", action="store_true", help=f"with --scenario: {IGNORE_OBSTACLES_HELP}")
     p.add_argument("--html", default=None, help="write one self-contained page that plays the run, then exit")
     p.add_argument("--fps", type=float, default=20.0, help="frames per second of the page or timeline (default 20)")

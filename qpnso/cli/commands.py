@@ -273,11 +273,19 @@ def cmd_view(args: argparse.Namespace) -> int:
     positive(args.fps, "--fps")
     if (args.result is None) == (args.scenario is None):
         raise InputError("give a result file or --scenario NAME, not both")
+    scenario_only = {"--strategy": args.strategy, "--duration-scale": args.duration_scale}
+    scenario_only["--ignore-obstacles"] = args.ignore_obstacles or None
+    file_only = {"--robot": args.robot, "--tool-frame": args.tool_frame, "--tool-offset": args.tool_offset}
+    file_only["--obstacles"] = args.obstacles
+    wrong = [flag for flag, value in (file_only if args.scenario else scenario_only).items() if value is not None]
+    if wrong:
+        where = "a scenario (--scenario)" if args.scenario else "a result file"
+        raise InputError(f"{', '.join(wrong)} do not apply to {where}")
     if args.scenario is not None:
         replay = scenario_replay(
             args.scenario,
             args.strategy,
-            positive(args.duration_scale, "--duration-scale"),
+            positive(1.0 if args.duration_scale is None else args.duration_scale, "--duration-scale"),
             progress_bar(not args.quiet, "simulate"),
             args.ignore_obstacles,
         )

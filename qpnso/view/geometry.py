@@ -68,12 +68,14 @@ def circle_frame(circle: ElbowCircle) -> pin.SE3:
 
 
 def arc(lo: float, hi: float, radius: float, around: float) -> np.ndarray | None:
-    """Points (k, 3) of the arc from arm angle ``lo`` to ``hi`` (rad) at ``radius`` (m), in the circle's frame;
-    an unbounded end is cut half a turn from ``around`` (the current arm angle, rad); None when an end or
-    ``around`` is unknown (NaN) or ``lo > hi``."""
-    if np.isnan(lo) or np.isnan(hi) or np.isnan(around) or lo > hi:
+    """Points (k, 3) of the arc from arm angle ``lo`` to ``hi`` (rad, unwrapped like ``around``) at ``radius``
+    (m), in the circle's frame, cut to half a turn either side of ``around`` (the current arm angle, rad: an
+    unbounded end); None when an end or ``around`` is unknown (NaN) or nothing is left (``lo > hi``)."""
+    if np.isnan(lo) or np.isnan(hi) or np.isnan(around):
         return None
     lo, hi = max(lo, around - np.pi), min(hi, around + np.pi)
+    if lo > hi:
+        return None
     a = np.linspace(lo, hi, max(2, int(np.ceil((hi - lo) / ARC_STEP_RAD)) + 1))
     return radius * np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)])
 

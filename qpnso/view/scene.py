@@ -8,8 +8,8 @@ The scene (names are viser's scene-tree paths):
 * ``/elbow``: the elbow circle's frame (:func:`~qpnso.view.geometry.circle_frame`), with the circle (grey),
   ROM_t (blue) and the continuity interval (green) as arcs outside it (:data:`ROM_OFFSET_M`,
   :data:`INTERVAL_OFFSET_M`: clear of the arm's capsules), the spoke from the centre through the elbow at the
-  recorded arm angle out to the interval's arc, a ball at its end (black); hidden where the arm angle is
-  undefined;
+  recorded arm angle out to the interval's arc, a ball at its end (black), labels at ROM_t's upper end and the
+  interval's lower end; hidden where the arm angle is undefined;
 * ``/obstacles/k``: the room's keep-out volumes (translucent red).
 
 :func:`write_html` records the shown ticks at a frame rate into viser's scene serializer and writes its
@@ -20,6 +20,7 @@ has viser's timeline to play and scrub.  :func:`serve` runs a viser server with 
 from __future__ import annotations
 
 import contextlib
+import html
 import io
 import socket
 import threading
@@ -149,6 +150,7 @@ class ReplayScene:
         self.interval = s.add_line_segments("/elbow/interval", empty, INTERVAL, thickness=0.006)
         self.spoke = s.add_line_segments("/elbow/spoke", empty, ELBOW, thickness=0.004)
         self.marker = s.add_icosphere("/elbow/arm_angle", radius=0.02, color=ELBOW)
+        self.labels = {name: s.add_label(f"/elbow/label_{name}", name) for name in ("ROM_t", "interval")}
 
     def set_camera(self, server) -> None:
         """Look at the middle of the tool's path from the front right, far enough to see base and tool."""
@@ -183,11 +185,12 @@ class ReplayScene:
         rad = circle.radius
         self.circle.points = polyline_segments(rad * unit_circle(ns))
         arcs = ((self.rom, r.rom[k], rad + ROM_OFFSET_M), (self.interval, r.interval[k], rad + INTERVAL_OFFSET_M))
-        for handle, (lo, hi), radius in arcs:
+        for (handle, (lo, hi), radius), label in zip(arcs, self.labels.values()):
             points = arc(lo, hi, radius, ns)
-            handle.visible = points is not None
+            handle.visible = label.visible = points is not None
             if points is not None:
                 handle.points = polyline_segments(points)
+                label.position = points[-1] if label is self.labels["ROM_t"] else points[0]
         tip = (rad + INTERVAL_OFFSET_M) * np.array([np.cos(ns), np.sin(ns), 0.0])
         self.spoke.points = np.array([[np.zeros(3), tip]])
         self.marker.position = tip
@@ -229,10 +232,24 @@ def html_page(replay: Replay, fps: float = 20.0) -> str:
         for before, k in zip(frames[:-1], frames[1:]):
             recording.insert_sleep(float(replay.t[k] - replay.t[before]))
             view.show(int(k))
-        return recording.as_html()
+        return with_caption(recording.as_html(), replay.title)
     finally:
         with contextlib.redirect_stdout(io.StringIO()):
             server.stop()
+
+
+def with_caption(page: str, title: str) -> str:
+    """viser's page with ``title`` as its title and, at the top right, the title and :data:`LEGEND` (the page
+    has no panel of its own for them), in the font viser's page embeds (Inter)."""
+    text = html.escape(title)
+    caption = (
+        '<div id="qpnso-caption" style="position:fixed;top:8px;right:8px;max-width:280px;z-index:1000;'
+        "padding:6px 10px;background:rgba(255,255,255,0.85);font-size:11px;font-family:Inter,sans-serif;"
+        f'color:#222;border-radius:4px;pointer-events:none"><b>{text}</b><br>{html.escape(LEGEND)}</div>'
+    )
+    page = page.replace("<title>Viser</title>", f"<title>qpnso: {text}</title>", 1)
+    at = page.rindex("</body>")
+    return page[:at] + caption + page[at:]
 
 
 def write_html(replay: Replay, path: str | Path, fps: float = 20.0) -> Path:
@@ -275,12 +292,13 @@ class Player:
         self.fps, self.view = fps, view
         gui = server.gui
         gui.add_markdown(f"**{r.title}**\n\n{LEGEND}")
+        self.readout = gui.add_markdown(readout(r, 0))
         self.time = gui.add_slider(
             "t (s)", min=float(r.t[0]), max=float(r.t[-1]), step=max(1.0 / fps, 1e-3), initial_value=float(r.t[0])
         )
         self.playing = gui.add_checkbox("play", initial_value=False)
         self.speed = gui.add_dropdown("speed", ("0.25", "0.5", "1", "2", "4"), initial_value="1")
-        self.time.on_update(lambda _: view.show(r.at(self.time.value)))
+        self.time.on_update(lambda _: self.show(r.at(self.time.value)))
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -291,6 +309,11 @@ class Player:
             if self.playing.value:
                 t = self.time.value + float(self.speed.value) / self.fps
                 self.time.value = float(r.t[0]) if t > r.t[-1] else t
+
+    def show(self, k: int) -> None:
+        """Move the scene to tick ``k`` and say where the elbow is."""
+        self.view.show(k)
+        self.readout.content = readout(self.view.replay, k)
 
     def stop(self) -> None:
         """Stop advancing the slider."""
@@ -304,3 +327,16 @@ LEGEND = (
     "through the elbow and ball (black); "
     "keep-out volumes (translucent red)."
 )
+
+
+def readout(replay: Replay, k: int) -> str:
+    """Tick ``k`` in one line: its time (s), the arm angle, ROM_t and the continuity interval (degrees)."""
+
+    def deg(x: float) -> str:
+        return f"{np.degrees(x):.1f}" if np.isfinite(x) else ("unknown" if np.isnan(x) else f"{'-' if x < 0 else '+'}∞")
+
+    rom, interval = replay.rom[k], replay.interval[k]
+    return (
+        f"t = {replay.t[k]:.3f} s: arm angle {deg(replay.ns[k])}°, ROM_t [{deg(rom[0])}°, {deg(rom[1])}°], "
+        f"interval [{deg(interval[0])}°, {deg(interval[1])}°]"
+    )

@@ -266,9 +266,13 @@ def serve(replay: Replay, host: str = "127.0.0.1", port: int = 8080, fps: float 
     ``player`` a :class:`Player` the caller stops."""
     viser = viser_module()
     server = viser.ViserServer(host=host, port=port, verbose=False)
-    view = ReplayScene(server, replay)
-    view.set_camera(server)
-    player = Player(server, view, fps)
+    try:
+        view = ReplayScene(server, replay)
+        view.set_camera(server)
+        player = Player(server, view, fps)
+    except BaseException:
+        server.stop()
+        raise
     if not block:
         return server, view, player
     print(f"qpnso view: {replay.title}: http://{host}:{server.get_port()} (Ctrl+C stops)", flush=True)

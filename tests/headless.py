@@ -29,7 +29,7 @@ OFFLINE = ["--proxy-server=127.0.0.1:9", "--host-resolver-rules=MAP * ~NOTFOUND"
 def screenshot_when(
     page: Path, ready: Callable[[bytes], bool], profile: Path, size=(640, 480), timeout_s: float = 90.0
 ) -> bytes:
-    """Open ``page`` (a file) in headless Chromium, offline, and return the first PNG screenshot (one a second)
+    """Open ``page`` (a file) in headless Chromium, offline, and return the first PNG screenshot (two a second)
     for which ``ready(png)`` holds; the last one taken if none did within ``timeout_s``."""
     from websockets.sync.client import connect
 
@@ -54,7 +54,7 @@ def screenshot_when(
             png = b""
             deadline = time.monotonic() + timeout_s
             while time.monotonic() < deadline:
-                time.sleep(1.0)
+                time.sleep(0.5)
                 png = base64.b64decode(call("Page.captureScreenshot", session).get("data", ""))
                 if png and ready(png):
                     break

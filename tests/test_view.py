@@ -14,6 +14,7 @@ import re
 import urllib.request
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import headless
 import numpy as np
@@ -23,6 +24,7 @@ from conftest import ALL_ROBOTS, SRS_ROBOTS, reference_arm_angle
 
 import qpnso
 from qpnso.cli import main
+from qpnso.control.offline import scene_record
 from qpnso.elbow.arm_angle import elbow_circle, elbow_points
 from qpnso.errors import InputError
 from qpnso.model.collision import link_capsules
@@ -40,10 +42,10 @@ from qpnso.view.scene import INTERVAL_OFFSET_M, free_port, html_page, readout, s
 # ------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
 def run():
-    """A short hands-on run of the microscope scenario (scenario B with a box): 1.2 s of the plant."""
+    """A short hands-on run of scenario B: 1.5 s of the plant (one run for every test here: the suite's time)."""
     from qpnso.lab.scenarios import simulate_scenario
 
-    return simulate_scenario("microscope", "qp", 1.2 / 36.14)
+    return simulate_scenario("B", "qp", 1.5 / 36.14)
 
 
 @pytest.fixture(scope="module")
@@ -162,13 +164,20 @@ def test_robot_spec_loads_the_same_kinematics(rng):
 
 
 # ------------------------------------------------------------ the result file
-def test_result_file_records_robot_and_room(run, result_file):
-    """The saved run says which robot ran it and which keep-out volumes were in the room."""
+BOX = qpnso.Box(center=(0.3, -0.4, 0.5), half_extents=(0.1, 0.12, 0.15), rpy_deg=(0.0, 0.0, 30.0))
+
+
+def test_result_file_records_robot_and_room(run, result_file, lwr, tmp_path):
+    """The saved run says which robot ran it and which keep-out volumes were in the room (scenario B: none; a
+    room the controller was not given: its box, none known), and the replay reads them back."""
     replay = load_replay(result_file)
-    assert replay.robot.name == "lwr4p"
-    assert [o.to_dict() for o in replay.obstacles] == run.scene["obstacles"] and len(replay.obstacles) == 1
-    assert run.scene["known_obstacles"] == 1
+    assert replay.robot.name == "lwr4p" and replay.obstacles == () and run.scene["known_obstacles"] == 0
     assert np.array_equal(replay.q, run.arrays["q"])
+    blind = SimpleNamespace(robot=lwr, obstacles=())
+    record = scene_record(blind, (BOX,))
+    assert record["obstacles"] == [BOX.to_dict()] and record["known_obstacles"] == 0
+    path = replace(run, scene=record).save(tmp_path / "room.npz")
+    assert load_replay(path).obstacles == (BOX,) and "0 of 1 obstacles known" in load_replay(path).title
 
 
 def test_old_result_file_needs_the_robot(run, tmp_path, lwr):
@@ -242,7 +251,7 @@ def assert_links_are_forward_kinematics(replay: Replay, html: str, fps: float) -
 
 
 def test_page_link_poses_are_pinocchio_forward_kinematics(page):
-    """The LWR4+'s hands-on run, read back from its page."""
+    """The LWR4+'s hands-on run in scenario B, read back from its page."""
     replay, html = page
     assert_links_are_forward_kinematics(replay, html, 20.0)
 
@@ -291,12 +300,14 @@ def test_page_hides_the_elbow_where_the_arm_angle_is_undefined(lwr):
     assert [nodes["/elbow"]["visible"] for _, nodes in states(record)] == [False, False, True]
 
 
-def test_page_draws_the_room_and_paths(page):
-    """The box of the room, the recorded tool path and its reference, in world coordinates."""
-    replay, html = page
-    record, buffers = recording(html)
+def test_page_draws_the_room_and_paths(result_file):
+    """A box given for the room (``--obstacles``), the recorded tool path and its reference, in world
+    coordinates."""
+    replay = load_replay(result_file, obstacles=(BOX,))
+    record, buffers = recording(html_page(replay, fps=5.0))
     nodes = states(record)[-1][1]
     box = replay.obstacles[0]
+    assert np.allclose(world(nodes, "/obstacles/0").rotation, box.matrix)
     assert np.allclose(world(nodes, "/obstacles/0").translation, box.center)
     assert np.allclose(nodes["/obstacles/0"]["props"]["dimensions"], 2 * np.array(box.half_extents))
     for name, path in (("tool", replay.tool), ("reference", replay.ref)):
@@ -391,14 +402,12 @@ def arm_pixels(png: bytes) -> int:
 
 
 @pytest.mark.skipif(headless.CHROMIUM is None, reason="no Chromium installed (apt-get install chromium)")
-def test_page_of_scenario_b_opens_in_chromium_without_network(tmp_path):
+def test_page_of_scenario_b_opens_in_chromium_without_network(page, tmp_path):
     """A scenario B run's page, opened from a file in headless Chromium with every network address refused,
     draws the arm: a screenshot (its path printed) has at least 2000 pixels of the arm's orange within 90 s."""
-    from qpnso.view import scenario_replay
-
-    replay = scenario_replay("B", "qp", 2.0 / 36.14)
-    page = write_html(replay, tmp_path / "B.html")
-    png = headless.screenshot_when(page, lambda png: arm_pixels(png) > 2000, tmp_path / "profile")
+    path = tmp_path / "B.html"
+    path.write_text(page[1])
+    png = headless.screenshot_when(path, lambda png: arm_pixels(png) > 2000, tmp_path / "profile")
     out = Path(os.environ.get("QPNSO_TEST_OUTPUT", tmp_path)) / "view_scenario_B.png"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_bytes(png)

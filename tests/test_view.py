@@ -188,6 +188,20 @@ def test_old_result_file_needs_the_robot(run, tmp_path, lwr):
     assert load_replay(path, lwr).obstacles == ()
 
 
+@pytest.mark.parametrize(
+    ("scene", "message"),
+    [
+        ({"robot": {"robot": "/nowhere/arm.urdf", "tool_frame": "tool", "tool_offset": np.eye(4).tolist()}}, "robot"),
+        ({"robot": {"robot": "lwr4p"}}, "not a robot record"),
+        ({"robot": robot_spec(qpnso.load_robot("lwr4p")), "obstacles": [{"type": "cone"}]}, "type"),
+    ],
+)
+def test_a_bad_scene_record_is_refused_by_name(run, tmp_path, scene, message):
+    path = replace(run, scene=scene).save(tmp_path / "bad.npz")
+    with pytest.raises(InputError, match=message):
+        load_replay(path)
+
+
 def test_replay_refuses_bad_arrays(run, lwr, iiwa=None):
     """Wrong joint count, a NaN configuration, a time axis that goes back: each named."""
     arrays = dict(run.arrays)

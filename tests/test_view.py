@@ -173,7 +173,7 @@ def test_result_file_records_robot_and_room(run, result_file, lwr, tmp_path):
     replay = load_replay(result_file)
     assert replay.robot.name == "lwr4p" and replay.obstacles == () and run.scene["known_obstacles"] == 0
     assert np.array_equal(replay.q, run.arrays["q"])
-    blind = SimpleNamespace(robot=lwr, obstacles=())
+    blind = SimpleNamespace(robot=lwr, obstacles=(), config=SimpleNamespace(strategy="qp"))
     record = scene_record(blind, (BOX,))
     assert record["obstacles"] == [BOX.to_dict()] and record["known_obstacles"] == 0
     path = replace(run, scene=record).save(tmp_path / "room.npz")
@@ -200,6 +200,28 @@ def test_a_bad_scene_record_is_refused_by_name(run, tmp_path, scene, message):
     path = replace(run, scene=scene).save(tmp_path / "bad.npz")
     with pytest.raises(InputError, match=message):
         load_replay(path)
+
+
+@pytest.mark.parametrize(("text", "message"), [("{not json", "not JSON"), ("[1, 2]", "not a table")])
+def test_a_scene_entry_that_is_not_a_json_table_is_refused(run, tmp_path, text, message):
+    path = tmp_path / "bad.npz"
+    np.savez(path, **run.arrays, scene=np.array(text))
+    with pytest.raises(InputError, match=message):
+        load_replay(path)
+
+
+def test_the_scene_record_names_the_strategy_that_ran(run):
+    assert run.scene["strategy"] == "qp"
+
+
+def test_replay_and_scene_refuse_what_they_cannot_show(run, lwr):
+    """A run without an array the replay reads; an obstacle kind the scene cannot draw."""
+    from qpnso.view.scene import add_obstacle
+
+    with pytest.raises(InputError, match="lacks"):
+        Replay.of({k: v for k, v in run.arrays.items() if k != "ns"}, lwr)
+    with pytest.raises(InputError, match="cannot draw"):
+        add_obstacle(None, "/obstacles/0", object())
 
 
 def test_replay_refuses_bad_arrays(run, lwr, iiwa=None):

@@ -220,7 +220,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         settings,
         ignore_obstacles=args.ignore_obstacles,
     )
-    strategy = settings.get("strategy", sc.controller.get("strategy", "qp"))
+    strategy = result.scene["strategy"]
     out = Path(args.out)
     result.save(out / "result.npz")
     write_json(str(out / "summary.json"), {"scenario": sc.name, "strategy": strategy, **result.summary, **result.setup})

@@ -139,11 +139,12 @@ SCENE_KEY = "scene"
 
 def scene_record(ctrl: Controller, obstacles=None) -> dict[str, Any]:
     """What a run moved, as plain data for a 3-D replay: the robot (:func:`~qpnso.model.robot.robot_spec`), the
-    keep-out volumes in the room (``obstacles``, default the controller's: their TOML tables, m, world frame)
-    and how many of them the controller was given (``known_obstacles``)."""
+    controller's ``strategy``, the keep-out volumes in the room (``obstacles``, default the controller's: their
+    TOML tables, m, world frame) and how many of them the controller was given (``known_obstacles``)."""
     room = ctrl.obstacles if obstacles is None else obstacles
     return {
         "robot": robot_spec(ctrl.robot),
+        "strategy": ctrl.config.strategy,
         "obstacles": [o.to_dict() for o in room],
         "known_obstacles": len(ctrl.obstacles),
     }

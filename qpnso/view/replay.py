@@ -133,10 +133,9 @@ def scenario_replay(
     the run."""
     from qpnso.lab.scenarios import load_scenario, simulate_scenario
 
-    sc = load_scenario(name)
     result = simulate_scenario(name, strategy, duration_scale, progress, ignore_obstacles=ignore_obstacles)
     robot = load_robot_spec(result.scene["robot"])
     room = as_obstacles(result.scene["obstacles"])
     unknown = ", obstacles unknown to the controller" if ignore_obstacles and room else ""
-    title = f"scenario {sc.name}, strategy {strategy or sc.controller.get('strategy', 'qp')}{unknown}"
+    title = f"scenario {load_scenario(name).name}, strategy {result.scene['strategy']}{unknown}"
     return Replay.of(result.arrays, robot, room, title)

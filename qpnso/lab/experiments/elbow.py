@@ -19,13 +19,12 @@ scenario, Bartlett on variances (:mod:`qpnso.lab.experiments.statistics`).
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from qpnso.errors import ConfigError
 from qpnso.lab.experiments.trials import (
-    model_error,
-    noise_seed,
+    PlantOptions,
     run_or_error,
     subject,
     subject_record,
@@ -38,18 +37,15 @@ STRATEGIES = {"DP": "damped", "FOP": "fixed", "NSO": "rom", "qp": "qp"}
 
 
 @dataclass(frozen=True)
-class ElbowOptions:
+class ElbowOptions(PlantOptions):
     """Size of the experiment; ``duration_scale`` < 1 runs only the start of each path (quick checks)."""
 
     subjects: int = 3
     trials: int = 3
     duration_scale: float = 1.0
-    model_error: dict[str, float] = field(default_factory=dict)  # empty: EXPERIMENT_MODEL_ERROR
-    armature_scale: float = 1.0  # the model's rotor inertias times this, in the controller and the plant alike
 
     def __post_init__(self) -> None:
-        if not self.armature_scale >= 0:
-            raise ConfigError(f"armature_scale must be >= 0, got {self.armature_scale}")
+        super().__post_init__()
         if self.subjects < 1 or self.trials < 1:
             raise ConfigError(f"subjects and trials must be >= 1, got {self.subjects}, {self.trials}")
         if not 0 < self.duration_scale <= 1:
@@ -68,16 +64,12 @@ class ElbowOptions:
 def elbow_job(index: int, seed: int, opts: ElbowOptions) -> dict[str, Any]:
     """One trial of job ``index``: its row."""
     from qpnso.lab.scenarios import load_scenario, simulate_scenario
-    from qpnso.lab.simulation import SimulationConfig
-    from qpnso.model.robot import load_robot_with_armature_scale
 
     scenario, s, trial, name = opts.job(index)
     person = subject(seed, s)
-    sim = SimulationConfig(
-        surgeon=person, model_error=model_error(seed, opts.model_error or None), noise_seed=noise_seed(seed, index)
-    )
+    sim = opts.simulation(seed, index, person)
     sc = load_scenario(scenario)
-    robot = load_robot_with_armature_scale(sc.robot, opts.armature_scale)
+    robot = opts.load_robot(sc.robot)
     summary, error = run_or_error(
         lambda: simulate_scenario(scenario, STRATEGIES[name], opts.duration_scale, simulation=sim, robot=robot)
     )

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -38,8 +38,7 @@ from scipy.optimize import minimize_scalar
 from qpnso.errors import ConfigError
 from qpnso.lab.experiments.trials import (
     ORDER_STREAM,
-    model_error,
-    noise_seed,
+    PlantOptions,
     run_or_error,
     subject,
     subject_record,
@@ -53,7 +52,7 @@ PAPER_STRATEGIES = STRATEGIES[:4]
 
 
 @dataclass(frozen=True)
-class MassFrictionOptions:
+class MassFrictionOptions(PlantOptions):
     """Size and fixed parameters of the experiment (see the module docstring)."""
 
     subjects: int = 8
@@ -68,12 +67,9 @@ class MassFrictionOptions:
     dwell: float = 0.5  # s
     posture_stiffness: float = 100.0  # N·m/rad
     damping_ratio: float = 0.1
-    model_error: dict[str, float] = field(default_factory=dict)  # empty: EXPERIMENT_MODEL_ERROR
-    armature_scale: float = 1.0  # the model's rotor inertias times this, in the controller and the plant alike
 
     def __post_init__(self) -> None:
-        if not self.armature_scale >= 0:
-            raise ConfigError(f"armature_scale must be >= 0, got {self.armature_scale}")
+        super().__post_init__()
         for name in ("subjects", "orders", "reps"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -126,9 +122,8 @@ def _work_area(opts: MassFrictionOptions) -> WorkArea:
     from qpnso.elbow.intervals import continuity_interval
     from qpnso.elbow.srs import Branch, ik
     from qpnso.model.costs import CostModel
-    from qpnso.model.robot import load_robot_with_armature_scale
 
-    robot = load_robot_with_armature_scale(opts.robot, opts.armature_scale)
+    robot = opts.load_robot(opts.robot)
     pose, b = opts.pose(), Branch(*ELBOW_UP_BRANCH)
     q_up = ik(robot, pose, 0.0, b)
     iv = continuity_interval(robot, q_up)
@@ -177,9 +172,8 @@ def mass_friction_job(index: int, seed: int, opts: MassFrictionOptions) -> dict[
     """One trial: subject, order and repetition of job ``index``, one strategy; its row."""
     from qpnso.control.config import ControllerConfig
     from qpnso.control.controller import Controller
-    from qpnso.lab.simulation import SimulationConfig, simulate
+    from qpnso.lab.simulation import simulate
     from qpnso.lab.surgeon import dome_targets, point_to_point_motion
-    from qpnso.model.robot import load_robot_with_armature_scale
 
     s, order, rep, strategy = opts.job(index)
     area = work_area(opts)
@@ -188,11 +182,9 @@ def mass_friction_job(index: int, seed: int, opts: MassFrictionOptions) -> dict[
     targets = dome_targets(pose.translation, opts.dome_radius, opts.moves)
     perm = job_rng(seed, ORDER_STREAM + order).permutation(opts.moves)
     motion = point_to_point_motion(pose, targets[perm], opts.peak_speed * person.speed_scale, opts.dwell)
-    robot = load_robot_with_armature_scale(opts.robot, opts.armature_scale)
+    robot = opts.load_robot(opts.robot)
     q0 = area.q_up if strategy in ("damped", "elbow-up") else area.q_opt
-    sim = SimulationConfig(
-        surgeon=person, model_error=model_error(seed, opts.model_error or None), noise_seed=noise_seed(seed, index)
-    )
+    sim = opts.simulation(seed, index, person)
     ctrl = Controller(robot, ControllerConfig.from_dict(controller_values(strategy, area, opts)))
     summary, error = run_or_error(lambda: simulate(ctrl, motion, q0, sim))
     return {

@@ -8,13 +8,17 @@ model error once per experiment from ``seed`` (one robot for every subject and s
 from __future__ import annotations
 
 import math
-from dataclasses import asdict
-from typing import Any
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
 
-from qpnso.errors import QpnsoError
+from qpnso.errors import ConfigError, QpnsoError
 from qpnso.lab.parallel import job_rng
 from qpnso.lab.plant import ModelMismatch
 from qpnso.lab.surgeon import Subject
+
+if TYPE_CHECKING:
+    from qpnso.lab.simulation import SimulationConfig
+    from qpnso.model.robot import Robot
 
 SUBJECT_STREAM = 100_000
 """Offset of the subjects' random streams (job indices stay below it)."""
@@ -51,6 +55,33 @@ COLUMNS = {"user_work_per_metre_N": "work_per_metre"}
 def model_error(seed: int, values: dict[str, float] | None = None) -> ModelMismatch:
     """The experiment's plant draw: :data:`EXPERIMENT_MODEL_ERROR` (or ``values``), seeded by ``seed``."""
     return ModelMismatch(**(EXPERIMENT_MODEL_ERROR if values is None else values), seed=int(seed))
+
+
+@dataclass(frozen=True)
+class PlantOptions:
+    """What each experiment sets of its plant and robot: ``model_error`` (empty: :data:`EXPERIMENT_MODEL_ERROR`)
+    and ``armature_scale``, the model's rotor inertias times this, in the controller and the plant alike."""
+
+    model_error: dict[str, float] = field(default_factory=dict)
+    armature_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.armature_scale >= 0:
+            raise ConfigError(f"armature_scale must be >= 0, got {self.armature_scale}")
+
+    def load_robot(self, name: str) -> "Robot":
+        """Robot ``name`` with the rotor inertias scaled."""
+        from qpnso.model.robot import load_robot_with_armature_scale
+
+        return load_robot_with_armature_scale(name, self.armature_scale)
+
+    def simulation(self, seed: int, index: int, person: Subject) -> "SimulationConfig":
+        """Job ``index``'s simulation: ``person`` at the tool, the experiment's plant draw, the job's force noise."""
+        from qpnso.lab.simulation import SimulationConfig
+
+        return SimulationConfig(
+            surgeon=person, model_error=model_error(seed, self.model_error or None), noise_seed=noise_seed(seed, index)
+        )
 
 
 def subject(seed: int, index: int) -> Subject:

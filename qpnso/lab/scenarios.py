@@ -29,14 +29,15 @@ from qpnso.errors import ConfigError
 from qpnso.model.obstacles import Obstacle
 from qpnso.model.robot import Robot, load_robot
 from qpnso.settings import SettingError, check, from_dict, out_of_range, read_toml
+from qpnso.shipped import shipped_dir
 
 if TYPE_CHECKING:
     from qpnso.control.offline import RunResult
     from qpnso.lab.simulation import SimulationConfig
     from qpnso.lab.surgeon import IntendedMotion
 
-SCENARIO_DIR = Path(__file__).resolve().parents[2] / "examples" / "scenarios"
-"""Where the shipped scenario files are."""
+SCENARIO_DIR = shipped_dir("scenarios")
+"""Where the shipped scenario files are (``examples/scenarios/`` of the source tree)."""
 
 
 @dataclass(frozen=True)

@@ -28,9 +28,10 @@ from qpnso.errors import (
     ModelError,
     RobotNotFoundError,
 )
+from qpnso.shipped import shipped_dir
 
-MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
-"""Folder of the robot description files shipped with qpnso."""
+MODELS_DIR = shipped_dir("models")
+"""Folder of the robot description files shipped with qpnso (``models/`` of the source tree)."""
 
 SHIPPED_URDF = {"lwr4p": "lwr4p.urdf", "iiwa14": "iiwa14.urdf"}
 OPTIONAL_ROBOTS = ("panda",)

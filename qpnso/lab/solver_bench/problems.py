@@ -17,12 +17,13 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from qpnso.errors import InputError
+from qpnso.shipped import shipped_dir
 
 if TYPE_CHECKING:
     import qpsolvers
 
-PROBLEM_DIR = Path(__file__).resolve().parents[3] / "solvers" / "problems"
-"""Where the committed problem sets are (``solvers/problems`` of the checkout)."""
+PROBLEM_DIR = shipped_dir("solver_problems")
+"""Where the committed problem set is (``solvers/problems`` of the source tree; a wheel ships ``quick.npz``)."""
 
 
 @dataclass

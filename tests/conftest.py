@@ -4,6 +4,7 @@ a test asks for compiled code itself, so the suite does not spend its time in gc
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
@@ -15,6 +16,21 @@ import qpnso  # noqa: E402
 import qpnso.model.robot  # noqa: E402
 from qpnso.compiled_cache import jit_disabled  # noqa: E402
 from qpnso.records import new_record  # noqa: E402
+
+
+def _source_tree() -> Path:
+    """The qpnso source tree the tests read examples/ from (its scripts, trajectories): ``QPNSO_SOURCE_TREE``
+    when the tests run from a copy (``.ci/run`` runs them so against the installed wheel), else the folder
+    above tests/.  The package's own data (models, scenarios) are read from the package under test."""
+    tree = Path(os.environ.get("QPNSO_SOURCE_TREE") or Path(__file__).resolve().parent.parent).resolve()
+    if not (tree / "examples").is_dir():
+        raise RuntimeError(f"{tree} is not a qpnso source tree (no examples/): set QPNSO_SOURCE_TREE to one")
+    return tree
+
+
+SOURCE_TREE = _source_tree()
+if os.environ.get("QPNSO_TEST_INSTALLED") and Path(qpnso.__file__).resolve().is_relative_to(SOURCE_TREE):
+    raise RuntimeError(f"QPNSO_TEST_INSTALLED is set but qpnso is imported from the source tree: {qpnso.__file__}")
 
 SRS_ROBOTS = ["lwr4p", "iiwa14"]
 HAS_PANDA = qpnso.model.robot._panda_urdf() is not None

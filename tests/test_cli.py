@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import SOURCE_TREE
 
 from qpnso.cli import main
 
@@ -346,7 +347,7 @@ def test_six_dof_arm_is_refused_by_name(tmp_path, capsys) -> None:
     for argv in (
         [
             "solve",
-            "examples/trajectories/hold_lwr4p.csv",
+            str(SOURCE_TREE / "examples" / "trajectories" / "hold_lwr4p.csv"),
             "--robot",
             str(urdf),
             "--out",

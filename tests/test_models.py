@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
-MODELS = Path(__file__).resolve().parent.parent / "models"
+from qpnso.model.robot import MODELS_DIR
+
+MODELS = MODELS_DIR  # the package's own data: what a wheel ships
 JOINTS = [f"joint_{i}" for i in range(1, 8)]
 N_RANDOM = 20
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import SOURCE_TREE
 
 import qpnso
 from qpnso.cli import main
@@ -71,7 +71,7 @@ def test_scenario_file_obstacles_load_and_reach_the_controller(tmp_path) -> None
 def test_microscope_box_is_the_stated_construction() -> None:
     """examples/place_microscope.py regenerates the file's box; the start is clear by more than the margin and
     the upper arm reaches into the box at the ROM's upper edge (coal)."""
-    path = Path(__file__).resolve().parents[1] / "examples" / "place_microscope.py"
+    path = SOURCE_TREE / "examples" / "place_microscope.py"
     spec = importlib.util.spec_from_file_location("place_microscope", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import SOURCE_TREE
 from scipy.spatial.transform import Rotation
 
 from qpnso.control.trajectory import (
@@ -24,7 +25,7 @@ from qpnso.control.trajectory import (
 from qpnso.errors import TrajectoryError
 
 DOWN = pin.utils.rotate("x", np.pi)  # tool z-axis pointing down
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "trajectories"
+EXAMPLES = SOURCE_TREE / "examples" / "trajectories"
 
 
 def random_traj(n: int = 12, seed: int = 0) -> Trajectory:

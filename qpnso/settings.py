@@ -270,6 +270,20 @@ def _plural(hint: Any) -> str:
     return {float: "finite numbers", int: "integers", bool: "booleans", str: "strings"}.get(hint, _describe(hint))
 
 
+def read_utf8(path: Path, error: type[Exception]) -> str:
+    """The text of the file ``path``, UTF-8 (a leading byte-order mark dropped, as spreadsheets write one); an
+    ``error`` names the file and why it cannot be read, or the line of its first byte that is not UTF-8."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise error(f"cannot read {path}: {exc.strerror or exc}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line, byte = data.count(b"\n", 0, exc.start) + 1, data[exc.start]
+        raise error(f"{path}: not UTF-8 text: line {line} has the byte 0x{byte:02x} ({exc.reason})") from None
+
+
 def read_toml(path: str | Path, what: str = "file") -> dict:
     """The tables of the TOML file ``path``; a :class:`qpnso.errors.ConfigError` says that the ``what``
     (e.g. ``"config file"``) is not found, or names the file and TOML's own complaint."""
@@ -277,6 +291,6 @@ def read_toml(path: str | Path, what: str = "file") -> dict:
     if not p.is_file():
         raise ConfigError(f"{what} not found: {p}")
     try:
-        return tomllib.loads(p.read_text())
+        return tomllib.loads(read_utf8(p, ConfigError))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None

@@ -397,3 +397,135 @@ def test_simulate_without_matplotlib_says_the_figure_was_skipped(tmp_path, capsy
     assert "run.png skipped: matplotlib is not installed (pip install 'qpnso[plot]')" in err
     data = json.loads((out / "summary.json").read_text())  # the simulate summary counts slow ticks too
     assert "slow_ticks" in data and data["tick_time_max_ms"] > 0
+
+
+# ------------------------------------------------------------ files that cannot be read or written (issue 31)
+HOLD_CSV = str(SOURCE_TREE / "examples" / "trajectories" / "hold_lwr4p.csv")
+
+
+def _writable(folder) -> bool:
+    import tempfile
+
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.fixture
+def read_only_folder(tmp_path):
+    """A folder this process cannot write in: a mode-0555 folder, or for root (whom modes do not stop) /sys."""
+    from pathlib import Path
+
+    folder = tmp_path / "read-only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    found = next((f for f in (folder, Path("/sys")) if f.is_dir() and not _writable(f)), None)
+    if found is None:
+        folder.chmod(0o755)
+        pytest.skip("no folder on this machine that this process cannot write in")
+    yield found
+    folder.chmod(0o755)
+
+
+@pytest.fixture(scope="module")
+def result_file(tmp_path_factory) -> str:
+    """A result.npz of a short solve: what ``qpnso plot`` reads."""
+    folder = tmp_path_factory.mktemp("result")
+    csv, res = str(folder / "hold.csv"), str(folder / "r.npz")
+    argv = ["trajectory", "hold", "--center", "0.65,0,0.5", "--rpy-deg", "180,30,180", "--duration", "0.05"]
+    assert main(argv + ["--out", csv]) == 0
+    assert main(["solve", csv, "--out", res, "--quiet"]) == 0
+    return res
+
+
+FILE_OUTPUTS = {
+    "trajectory": lambda out, tmp, res: ["trajectory", "hold", "--out", out],
+    "solve": lambda out, tmp, res: ["solve", HOLD_CSV, "--out", out, "--quiet"],
+    "solve --summary": lambda out, tmp, res: ["solve", HOLD_CSV, "--out", str(tmp / "r.npz"), "--summary", out],
+    "plot": lambda out, tmp, res: ["plot", res, "--out", out],
+    "intervals": lambda out, tmp, res: ["intervals", "--out", out],
+    "bench fuzz": lambda out, tmp, res: ["bench", "fuzz", "-n", "20", "--quiet", "--out", out],
+}
+"""Commands whose output is one file: argv given the output path, tmp_path and a result file."""
+FOLDER_OUTPUTS = {
+    "simulate": ["simulate", "--scenario", "A", "--duration-scale", "0.01", "--quiet", "--out"],
+    "compare": ["compare", "--scenario", "A", "--strategies", "qp", "--duration-scale", "0.01", "--quiet", "--out"],
+    "study": ["study", "workspace", "--n", "2", "--workers", "1", "--quiet", "--out"],
+    "experiment": ["experiment", "elbow", "--subjects", "1", "--trials", "1", "--duration-scale", "0.01", "--out"],
+    "bench solvers": ["bench", "solvers", "--quick", "--quiet", "--out"],
+}
+"""Commands whose output is a folder: argv up to the output path."""
+CASES = [(name, case) for name in [*FILE_OUTPUTS, *FOLDER_OUTPUTS] for case in ("kind", "under a file", "read-only")]
+
+
+@pytest.mark.parametrize("command, case", CASES, ids=[f"{n}-{c}" for n, c in CASES])
+def test_an_output_that_cannot_be_written_is_one_line_before_the_work(command, case, tmp_path, capsys, request) -> None:
+    """Item 6: an output path that cannot be written (a folder given for a file or a file for a folder, a path
+    under a file, a read-only place) gave a traceback, after the run; now one line naming the flag, the path
+    and the problem, exit 2, before any work (nothing printed, nothing written)."""
+    folder = command in FOLDER_OUTPUTS
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    if case == "kind":
+        out, expected = (a_file, "is a file, not a folder") if folder else (tmp_path, "is a folder, not a file")
+    elif case == "under a file":
+        out, expected = a_file / "sub" / "x", f"{a_file} is a file, not a folder"
+    else:
+        read_only = request.getfixturevalue("read_only_folder")
+        out, expected = read_only / "x", f"cannot write in {read_only}"
+    if folder:
+        argv = FOLDER_OUTPUTS[command] + [str(out)]
+    else:
+        res = request.getfixturevalue("result_file") if command == "plot" else ""
+        argv = FILE_OUTPUTS[command](str(out), tmp_path, res)
+    capsys.readouterr()  # (what making the fixtures printed)
+    flag = "--summary" if command == "solve --summary" else "--out"
+    before = sorted(tmp_path.rglob("*"))
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"qpnso: error: {flag} {out}: ") and captured.err.count("\n") == 1
+    assert expected in captured.err and captured.out == ""
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_a_csv_that_is_not_utf8_is_one_line_naming_the_line(tmp_path, capsys) -> None:
+    """Item 6: a trajectory or settings file that is not UTF-8 gave a UnicodeDecodeError traceback; now one line
+    naming the file, the line and the byte, exit 2.  A byte-order mark (spreadsheets write one) is accepted."""
+    text = "t,x,y,z,qx,qy,qz,qw\n0,0.65,0,0.5,1,0,0,0\n0.05,0.65,0,0.5,1,0,0,0\n"
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes(text.encode() + "# température\n".encode("latin-1"))
+    res = tmp_path / "r.npz"
+    assert main(["solve", str(latin), "--out", str(res), "--quiet"]) == 2
+    assert capsys.readouterr().err == (
+        f"qpnso: error: {latin}: not UTF-8 text: line 4 has the byte 0xe9 (invalid continuation byte)\n"
+    )
+    config = tmp_path / "c.toml"
+    config.write_bytes('[controller]\nstrategy = "qp" # défaut\n'.encode("latin-1"))
+    assert main(["solve", HOLD_CSV, "--config", str(config), "--out", str(res), "--quiet"]) == 2
+    assert capsys.readouterr().err == (
+        f"qpnso: error: {config}: not UTF-8 text: line 2 has the byte 0xe9 (invalid continuation byte)\n"
+    )
+    assert not res.exists()
+    from qpnso.control.trajectory import read_csv
+
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    assert len(read_csv(bom)) == 2
+
+
+def test_a_file_that_cannot_be_written_after_all_is_one_line(tmp_path, capsys, monkeypatch, result_file) -> None:
+    """Item 6: an OSError on a named file while writing (a disk that fills during the run...) is one line
+    naming the file, exit 2, not a traceback."""
+    import errno
+
+    from qpnso.lab import plots
+
+    def full_disk(arrays, out, title=""):
+        raise OSError(errno.ENOSPC, "No space left on device", str(out))
+
+    monkeypatch.setattr(plots, "plot_run", full_disk)
+    out = tmp_path / "x.png"
+    assert main(["plot", result_file, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == f"qpnso: error: {out}: No space left on device\n"

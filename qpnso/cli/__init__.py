@@ -2,10 +2,11 @@
 
 Every sub-command is a small function ``cmd_<name>(args) -> int`` registered in
 ``build_parser``.  Errors that qpnso raises on purpose (bad robot, bad file,
-bad angle, bad flag value...) are printed as one line, ``qpnso: error: ...``,
-exit status 2.  A run that completes but fails its check (``qpnso solve``: the
-tool left the trajectory by more than the tolerance) writes its results, prints
-one line ``qpnso: failed: ...`` and exits with status 1.
+bad angle, bad flag value, an output path that cannot be written...) are printed
+as one line, ``qpnso: error: ...``, exit status 2; so is a file that cannot be
+read or written after all.  A run that completes but fails its check (``qpnso
+solve``: the tool left the trajectory by more than the tolerance) writes its
+results, prints one line ``qpnso: failed: ...`` and exits with status 1.
 
 The parser and :func:`main` are here; the sub-commands are in :mod:`.commands`
 (info, intervals, trajectory, solve, simulate, plot, compare, study, view) and :mod:`.bench`
@@ -220,3 +221,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (argparse.ArgumentTypeError, QpnsoError) as exc:  # a bad flag value (named) or refused input
         print(f"qpnso: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a named file that cannot be read or written after all (disk full, removed meanwhile...)
+        if exc.filename is None:
+            raise
+        print(f"qpnso: error: {file_error(exc)}", file=sys.stderr)
+        return 2
+
+
+def file_error(exc: OSError) -> str:
+    """``exc`` as one line naming the file: the destination of a rename (the file asked for, not its temporary
+    twin), else the file."""
+    name = exc.filename2 if exc.filename2 is not None else exc.filename
+    return f"{name}: {exc.strerror or exc}"

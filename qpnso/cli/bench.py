@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from qpnso.cli.common import load_cli_robot, parse_vector, progress_bar, write_json
+from qpnso.cli.common import load_cli_robot, output_path, parse_vector, progress_bar, write_json
 
 
 # --------------------------------------------------------------------- bench
@@ -18,9 +18,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         from qpnso.lab.solver_bench import run_solver_benchmark
 
-        report = run_solver_benchmark(
-            Path(args.out or "solver-bench"), quick=args.quick, progress=None if args.quiet else print
-        )
+        out = output_path(args.out or "solver-bench", "--out", folder=True)
+        report = run_solver_benchmark(Path(out), quick=args.quick, progress=None if args.quiet else print)
         print(report.read_text())
         return 0
     if args.what == "fuzz":
@@ -46,6 +45,8 @@ def bench_fuzz(args: argparse.Namespace) -> int:
     from qpnso.control.config import STRATEGIES
     from qpnso.lab.fuzz import FuzzConfig, run_fuzz
 
+    if args.out:
+        output_path(args.out, "--out")
     offset = parse_vector(args.tool_offset, 3, "--tool-offset") if args.tool_offset else (0.0, 0.0, 0.1)
     strategies = tuple(x.strip() for x in args.strategies.split(",") if x.strip()) if args.strategies else STRATEGIES
     budget = None if args.solver_time_budget_ms is None else args.solver_time_budget_ms * 1e-3

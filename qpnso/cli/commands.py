@@ -14,6 +14,7 @@ from qpnso.cli.common import (
     controller_overrides,
     have_matplotlib,
     load_cli_robot,
+    output_path,
     parse_vector,
     positive,
     print_notes,
@@ -82,6 +83,7 @@ def cmd_intervals(args: argparse.Namespace) -> int:
     from qpnso.elbow.rom import ElbowConfig
     from qpnso.lab.plots import plot_intervals
 
+    output_path(args.out, "--out")
     if not have_matplotlib():
         from qpnso.errors import InputError
 
@@ -126,10 +128,13 @@ def parse_targets(text: str) -> np.ndarray:
 
 def cmd_trajectory(args: argparse.Namespace) -> int:
     """Generate a tool trajectory CSV (t,x,y,z,qx,qy,qz,qw)."""
+    from pathlib import Path
+
     import pinocchio as pin
 
     from qpnso.control import trajectory as tr
 
+    output_path(args.out, "--out")
     center = parse_vector(args.center, 3, "--center")
     rot = pin.rpy.rpyToMatrix(*np.radians(parse_vector(args.rpy_deg, 3, "--rpy-deg")))
     pose = pin.SE3(rot, center)
@@ -145,6 +150,7 @@ def cmd_trajectory(args: argparse.Namespace) -> int:
         traj = tr.point_to_point(targets, peak_speed=args.speed, orientation=rot, dt=args.dt)
     else:
         traj = tr.hold(pose, args.duration, dt=args.dt)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # as every command's output
     tr.write_csv(traj, args.out)
     print(f"{args.kind}: {len(traj)} samples, {traj.duration:.2f} s, written to {args.out}")
     return 0
@@ -160,6 +166,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
     from qpnso.control.offline import load_config, solve_trajectory
     from qpnso.control.trajectory import read_csv
 
+    output_path(args.out, "--out")
+    if args.summary:
+        output_path(args.summary, "--summary")
     tol_m = positive(args.tool_tolerance_mm, "--tool-tolerance-mm") / 1000.0
     tol_rad = np.radians(positive(args.tool_tolerance_deg, "--tool-tolerance-deg"))
     robot = load_cli_robot(args, redundant=True)
@@ -204,6 +213,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from qpnso.lab.plots import plot_run
     from qpnso.lab.scenarios import load_scenario, simulate_scenario
 
+    output_path(args.out, "--out", folder=True)
     sc = load_scenario(args.scenario)
     settings = config_values(args.config, controller_overrides(args))
     plot = not args.no_plot and have_matplotlib()  # checked first: say so before a long run, not after
@@ -255,6 +265,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from qpnso.errors import InputError
     from qpnso.lab.plots import plot_run
 
+    output_path(args.out, "--out")
     arrays, _ = read_result(args.result, PLOTTED)
     if not have_matplotlib():
         raise InputError(f"qpnso plot needs {NO_MATPLOTLIB}")
@@ -313,6 +324,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from qpnso.lab.plots import plot_comparison
     from qpnso.lab.scenarios import load_scenario, simulate_scenario
 
+    output_path(args.out, "--out", folder=True)
     strategies = [x.strip() for x in args.strategies.split(",") if x.strip()]
     unknown = [x for x in strategies if x not in STRATEGIES]
     if unknown:
@@ -413,6 +425,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
     from qpnso.lab.experiments import run_experiment
 
+    output_path(args.out, "--out", folder=True)
     options: dict[str, Any] = {}
     for flag in ("subjects", "orders", "reps", "moves", "trials", "duration_scale", "armature_scale"):
         value = getattr(args, flag)
@@ -443,6 +456,7 @@ def cmd_study(args: argparse.Namespace) -> int:
 
     from qpnso.lab.studies import run_study
 
+    output_path(args.out, "--out", folder=True)
     options = {}
     for item in args.option or []:
         key, sep, value = item.partition("=")

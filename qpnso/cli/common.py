@@ -96,6 +96,33 @@ def print_summary(summary: dict, title: str) -> None:
         print(f"  {key:<{width}}  {value:.6g}" if isinstance(value, float) else f"  {key:<{width}}  {value}")
 
 
+def output_path(path: str, flag: str, folder: bool = False) -> str:
+    """``path`` if the command can write its output there, checked before the work rather than after a long
+    run: a file (a folder with ``folder``) that is not a folder (not a file), in a folder qpnso can write (a
+    missing one is made when the output is written, in the nearest existing one); else an InputError naming
+    ``flag``, ``path`` and the problem."""
+    import tempfile
+    from pathlib import Path
+
+    from qpnso.errors import InputError
+
+    target = Path(path)
+    kinds = ("file", "folder") if folder else ("folder", "file")
+    if target.exists() and target.is_dir() != folder:
+        raise InputError(f"{flag} {path}: is a {kinds[0]}, not a {kinds[1]}")
+    existing = (target if folder else target.parent).absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError(f"{flag} {path}: {existing} is a file, not a folder")
+    try:
+        with tempfile.NamedTemporaryFile(dir=existing, prefix=".qpnso-probe-"):
+            pass
+    except OSError as exc:
+        raise InputError(f"{flag} {path}: cannot write in {existing} ({exc.strerror or exc})") from None
+    return path
+
+
 def write_json(path: str, data: dict) -> None:
     import json
     from pathlib import Path

@@ -35,6 +35,7 @@ bounded jerk).
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import tempfile
@@ -48,6 +49,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
 from qpnso.errors import TrajectoryError
+from qpnso.settings import read_utf8
 
 COLUMNS = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
 """CSV columns: time (s), position (m, world), unit quaternion (scalar last)."""
@@ -207,15 +209,15 @@ def read_csv(path: str | os.PathLike) -> Trajectory:
     """Read a trajectory CSV (header ``t,x,y,z,qx,qy,qz,qw`` in any order).
 
     Raises :class:`TrajectoryError` naming the file, the 1-based data row and
-    the column for: missing file, empty file, missing/unknown/duplicate
+    the column for: missing or unreadable file, text not UTF-8 (naming the line;
+    a leading byte-order mark is dropped), empty file, missing/unknown/duplicate
     column, wrong field count, unparsable number, NaN/inf, time not strictly
     increasing, quaternion far from unit norm, fewer than 2 rows.
     """
     path = Path(path)
     if not path.is_file():
         raise TrajectoryError(f"trajectory file not found: {path}")
-    with open(path, newline="") as f:
-        rows = list(csv.reader(f))
+    rows = list(csv.reader(io.StringIO(read_utf8(path, TrajectoryError), newline="")))
     while rows and not any(cell.strip() for cell in rows[-1]):
         rows.pop()  # trailing blank lines
     if not rows:

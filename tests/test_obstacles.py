@@ -16,6 +16,7 @@ import pytest
 import qpnso
 from qpnso.control.config import ControllerConfig, Status
 from qpnso.control.controller import Controller
+from qpnso.control.rows.obstacles import EXIT_SPEED
 from qpnso.elbow.arm_angle import arm_angle
 from qpnso.elbow.clearance import keep_out_record, least_clearance
 from qpnso.elbow.srs import branch, ik
@@ -167,7 +168,9 @@ def test_a_keep_out_row_is_the_distance_s_exact_gradient(robot, caps) -> None:
             row = r["obstacle_first"] + k
             np.testing.assert_allclose(pb["soft_C"][row] / G["row_scale"], fd, atol=1e-6)
             gap = d0[c] - G["margin"]
-            expected = min(-G["gain"] * gap, G["recovery_speed"])  # (within the margin: back at most this fast)
+            expected = min(-G["gain"] * gap, G["recovery_speed"])  # (within the margin: back at most this fast,
+            if gap < 0:  # and at least EXIT_SPEED)
+                expected = max(expected, min(EXIT_SPEED, G["recovery_speed"]))
             assert pb["soft_l"][row] / G["row_scale"] == pytest.approx(expected, abs=1e-9)
             checked += 1
     assert checked >= 6
@@ -266,19 +269,21 @@ def closed_loop(ctrl: Controller, q0: np.ndarray, direction: np.ndarray, ticks: 
 def test_no_link_enters_an_obstacle_over_ten_thousand_ticks(robot, caps) -> None:
     """Must hold: 1.5·10⁴ ticks (ten 1.5 s episodes, five with the tool held, five moving at up to 5 cm/s), elbow-up
     pulling the elbow through an obstacle on its way: no capsule ever overlaps it (NumPy sampling), the margin
-    kept to 1 mm, never ``OBSTACLE``; the same runs with the obstacle unknown to the controller go into it."""
+    kept to 1 mm, ``OBSTACLE`` exactly on the ticks with a link inside the margin (if any); the same runs with the
+    obstacle unknown to the controller go into it."""
     rng = np.random.default_rng(5)
     for i in range(10):
         q0, target_deg, obstacle, twist = episode(robot, caps, rng, moving=i >= 5)
         config = ControllerConfig(strategy="elbow-up", elbow_up_angle_deg=target_deg, obstacles=[obstacle])
         ctrl = Controller(robot, config)
-        least, flagged = math.inf, 0
+        least, flagged, inside = math.inf, 0, 0
         for q, cmd in closed_loop(ctrl, q0, twist, 1500):
             least = min(least, sampled_clearance(robot, caps, q, obstacle))
             flagged += bool(cmd.status & Status.OBSTACLE)
+            inside += cmd.clearance < config.obstacle_margin
         assert least >= 0.0, (i, least)
         assert least >= config.obstacle_margin - 1e-3, (i, least)
-        assert flagged == 0
+        assert flagged == inside
         ctrl.set_obstacles([])  # (the room still has it: measured, not known)
         blind = (sampled_clearance(robot, caps, q, obstacle) for q, _ in closed_loop(ctrl, q0, twist, 1500))
         assert any(d < 0.0 for d in blind), i  # (not vacuous: the pull goes into it)

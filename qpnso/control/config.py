@@ -58,8 +58,9 @@ class Status(enum.Flag):
     ELBOW_OUTSIDE_ROM = FLAG_ELBOW_OUTSIDE_ROM  # the arm angle is outside ROM_t this tick
     INTERNAL_ERROR = FLAG_INTERNAL_ERROR  # a tick could not be computed: joints stopped, τ = g(q)
     QP_DEADLINE = FLAG_QP_DEADLINE  # the cascade's time budget was spent: lower levels skipped (with QP_FAILED)
-    OBSTACLE = FLAG_OBSTACLE  # a link cannot keep its margin from an obstacle (the tool's motion forces it) or
-    # overlaps it: Command.clearance and the message say which
+    OBSTACLE = FLAG_OBSTACLE  # a link is inside its margin of an obstacle (or overlaps it), whatever the cause,
+    # or cannot keep its margin (the tool's or the obstacle's motion forces it): Command.clearance and the message
+    # say which link and obstacle
 
 
 @dataclass

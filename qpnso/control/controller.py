@@ -60,12 +60,12 @@ from qpnso.control.tick import (
     stop_tick,
     tick_dtype,
 )
-from qpnso.elbow.clearance import OBSTACLE_ROOM, set_obstacles
+from qpnso.elbow.clearance import OBSTACLE_ROOM, set_obstacles, still_obstacles
 from qpnso.elbow.intervals import NumericalWalk
 from qpnso.errors import ConfigError, InputError, QpnsoError
 from qpnso.model.collision import has_capsules, link_capsules
 from qpnso.model.costs import CostModel
-from qpnso.model.obstacles import Obstacle, as_obstacles
+from qpnso.model.obstacles import Obstacle, as_obstacles, checked_velocities, placement_velocity
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar, tick_vector
 from qpnso.qp import HierarchicalQP
 from qpnso.qp.problem import STOPPED, new_problem
@@ -229,26 +229,72 @@ class Controller:
             # tick): the first tick has it
             self._first_interval(q, state)
         self.qp.reset()  # warm starts and solver objects: a reset controller answers as a new one
+        self._forget_obstacle_motion()
         self.strategy.reset(q, state)
         self._reset_done = True
         self.step_count = 0
 
-    def set_obstacles(self, obstacles: Sequence[Obstacle]) -> None:
+    _placed: tuple[tuple[Obstacle, ...], int] | None  # the volumes' last placement and the step count then
+
+    def set_obstacles(self, obstacles: Sequence[Obstacle], velocities: Sequence[object] | None = None) -> None:
         """Move, add or remove the keep-out volumes (world frame, m) between ticks: from the next tick the rows
-        keep the links from these, and the continuity interval is renewed against them.  At most the room
-        the controller was built with (``max(8, len(config.obstacles))``); a :class:`qpnso.settings.SettingError`
-        names what is wrong, and nothing changes."""
+        keep the links from these, and the continuity interval is renewed against them (it is the volumes'
+        geometry as placed now: their motion does not enter it).  At most the room the controller was built
+        with (``max(8, len(config.obstacles))``).
+
+        A moving volume's velocity enters its rows (the relative velocity, docs/method.md §10), and the torque
+        wall with them.  ``velocities``: one entry per volume, world frame — 3 numbers (its centre's velocity,
+        m/s: a sphere's or box's centre, a capsule's midpoint), 6 (then its angular velocity about that centre,
+        rad/s) or None.  Where not given (None, or no ``velocities``) it is estimated from this placement and the
+        same entry of the previous call (matched by position in the list): the displacement over the ticks
+        stepped between the two calls (at least one tick, ``dt`` each;
+        :func:`qpnso.model.obstacles.placement_velocity`).  That assumes the volume is placed once a tick as it
+        moves (or every N ticks: then its mean velocity); an estimated velocity holds for as many ticks as it
+        was measured over and is then dropped (a volume placed once and left is still again), a given one until
+        the next call.  The first call after the constructor or a ``reset``, a volume of another kind at that
+        position, or one that jumped faster than ``PLACEMENT_JUMP_SPEED`` (2 m/s, a re-placement) is taken as
+        still.  A :class:`qpnso.settings.SettingError` or :class:`~qpnso.errors.InputError` names what is wrong,
+        and nothing changes."""
         if self.capsules is None:
             raise ConfigError(f"{self.robot.name}: no link capsules (models/collision.json): obstacles not supported")
         checked = as_obstacles(obstacles)
+        given: list[np.ndarray | None] = [None] * len(checked)
+        if velocities is not None:
+            given = checked_velocities(velocities, len(checked))
+        motion, hold = self._obstacle_motion(checked, given)
         params = self.records.params
-        set_obstacles(params["geo"], checked)
+        set_obstacles(params["geo"], checked, motion, hold)
         params[0]["closed_form_interval"] = interval_in_tick(self.robot, params)  # (links that do not turn
         # rigidly with the arm angle: the numerical walk, with the obstacles)
         self.obstacles = checked
+        self._placed = (checked, self.step_count)
         self._walk = None  # (a walk under way knew the old obstacles)
         self.records.memory[0]["iv_age"] = math.inf  # (renewed at the next tick, against these)
         self.records.memory[0]["iv_p"][:] = math.inf  # (a held tool renews it too: its pose "moved")
+
+    def _obstacle_motion(
+        self, obstacles: tuple[Obstacle, ...], given: list[np.ndarray | None]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The volumes' velocities (len, 6: m/s then rad/s, world) for :meth:`set_obstacles` and the ticks each
+        holds for (len,): the ``given`` ones until the next placement (inf), the others estimated against the
+        previous placement (``self._placed``: the volumes and the step count when they were placed; None after
+        a reset) for as many ticks as that placement is old (at least one)."""
+        out, hold = np.zeros((len(obstacles), 6)), np.zeros(len(obstacles))
+        before, at = self._placed if self._placed is not None else ((), self.step_count)
+        ticks = max(self.step_count - at, 1)
+        for i, (obstacle, velocity) in enumerate(zip(obstacles, given)):
+            if velocity is not None:
+                out[i], hold[i] = velocity, math.inf
+            elif i < len(before):
+                out[i], hold[i] = placement_velocity(before[i], obstacle, self.config.dt * ticks), ticks
+        return out, hold
+
+    def _forget_obstacle_motion(self) -> None:
+        """A new run (``reset``): the volumes' last placement forgotten, so the next :meth:`set_obstacles`
+        takes them as still unless given their velocities, and until then they are still (velocities zero)."""
+        self._placed = None
+        if self.capsules is not None:
+            still_obstacles(self.records.params["geo"])
 
     @property
     def ns0(self) -> float:
@@ -393,12 +439,16 @@ class Controller:
         return _stamped(cmd, bits, t0)
 
     def _obstacle_message(self, r: Report) -> str:
-        """What ``OBSTACLE`` means this tick: which link, how near which obstacle."""
+        """What ``OBSTACLE`` means this tick: which link, how near which obstacle (the least clearance's pair),
+        and whether it is inside its margin, overlaps the obstacle, or cannot keep its keep-out row."""
         link = self.capsules.names[r.clear_capsule] if self.capsules and r.clear_capsule >= 0 else "a link"
-        return (
-            f"obstacle: {link} is {r.clearance:.4f} m from obstacle {r.clear_obstacle} (margin "
-            f"{self.config.obstacle_margin:g} m) and the tool's motion leaves no way round it"
-        )
+        margin = self.config.obstacle_margin
+        where = f"obstacle: {link} is {r.clearance:.4f} m from obstacle {r.clear_obstacle}"
+        if r.clearance < 0.0:
+            return f"{where}: it overlaps the obstacle (margin {margin:g} m)"
+        if r.clearance < margin:
+            return f"{where}: inside its margin of {margin:g} m"
+        return f"{where} (margin {margin:g} m) and the tool's or the obstacle's motion leaves no way round it"
 
     def _refuse_q(self, qv: np.ndarray) -> None:
         """Raise :class:`InputError` naming the first joint beyond its limits by more than

@@ -15,7 +15,7 @@ FLAG_QP_FALLBACK = 512  # ProxQP did not solve within its iteration budget: DAQP
 FLAG_ELBOW_OUTSIDE_ROM = 1024  # the arm angle is outside ROM_t this tick
 FLAG_INTERNAL_ERROR = 2048  # a tick could not be computed: joints stopped, τ = g(q)
 FLAG_QP_DEADLINE = 4096  # the cascade's time budget was spent: lower levels skipped (with QP_FAILED)
-FLAG_OBSTACLE = 8192  # a link cannot keep its margin from an obstacle (the tool's motion forces it) or overlaps it
+FLAG_OBSTACLE = 8192  # a link inside its margin of an obstacle (or overlapping it), or unable to keep its margin
 
 PREDICTION_MISSED = 1 << 30  # not a status (no FLAG_): q̇ far from the predicted one, the tick is solved again
 

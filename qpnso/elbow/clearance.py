@@ -110,6 +110,9 @@ def keep_out_dtype(points: int, capsules: int, room: int) -> np.dtype:
             ("ob_R", f8, (o, 3, 3)),  # a box's rotation, world ← box
             ("ob_half", f8, (o, 3)),  # a box's half extents (m)
             ("ob_radius", f8, o),  # a sphere's or capsule's radius (m)
+            ("ob_velocity", f8, (o, 3)),  # m/s, world: the velocity of its centre (obstacle_centre); 0: still
+            ("ob_omega", f8, (o, 3)),  # rad/s, world: its angular velocity about that centre
+            ("ob_hold", f8, o),  # ticks the two above still hold (inf: until the next placement); then zeroed
         ]
     )
 
@@ -143,13 +146,36 @@ def keep_out_record(
     return rec
 
 
-def set_obstacles(rec: np.ndarray, obstacles: Sequence[Obstacle]) -> None:
-    """Write ``obstacles`` into the keep-out record ``rec`` (in place; SettingError beyond its room)."""
+def set_obstacles(
+    rec: np.ndarray,
+    obstacles: Sequence[Obstacle],
+    velocities: np.ndarray | None = None,
+    hold: np.ndarray | None = None,
+) -> None:
+    """Write ``obstacles`` into the keep-out record ``rec`` (in place; SettingError beyond its room, nothing
+    written) with their ``velocities`` (len(obstacles), 6): each centre's linear velocity (m/s) then the angular
+    velocity (rad/s), world frame (:func:`qpnso.model.obstacles.placement_velocity`), each for ``hold``
+    (len(obstacles),) more ticks (inf: until the next placement; :func:`motion_tick` counts them down); None:
+    all still."""
     g = rec[0]
-    arrays = obstacle_arrays(obstacles, g["ob_kind"].shape[0])
+    room = g["ob_kind"].shape[0]
+    arrays = obstacle_arrays(obstacles, room)
+    motion, ticks = np.zeros((room, 6)), np.zeros(room)
+    if velocities is not None:
+        motion[: len(obstacles)] = velocities
+        ticks[: len(obstacles)] = math.inf if hold is None else hold
+    arrays["ob_velocity"], arrays["ob_omega"], arrays["ob_hold"] = motion[:, :3], motion[:, 3:], ticks
     for name, value in arrays.items():
         g[name] = value
     g["n_obstacles"] = len(obstacles)
+
+
+def still_obstacles(rec: np.ndarray) -> None:
+    """The keep-out record ``rec``'s obstacles taken as still from now on (their velocities zero; in place)."""
+    g = rec[0]
+    g["ob_velocity"] = 0.0
+    g["ob_omega"] = 0.0
+    g["ob_hold"] = 0.0
 
 
 def point_motion(robot: Robot, capsules: LinkCapsules) -> tuple[np.ndarray | None, int, int, float]:
@@ -214,6 +240,40 @@ def pair_distance(G, points, c, o):
         a, b, int(G.ob_kind[o]), G.ob_center[o], G.ob_second[o], G.ob_R[o], G.ob_half[o], G.ob_radius[o]
     )
     return d - G.cap_radius[c], t, n0, n1, n2
+
+
+@njit(cache=True)
+def obstacle_approach(G, points, c, o, t, n0, n1, n2):
+    """m/s: how fast obstacle ``o``'s surface moves toward capsule ``c`` along the pair's unit normal
+    ``n`` = (n0, n1, n2) (from the obstacle toward the witness ``p = a + t(b − a)`` on the capsule's axis, the
+    chain ``points`` (k, 3) m; :func:`pair_distance`): ``n·(v + ω × (p − c_o))``, ``v`` and ``ω`` its velocity
+    and angular velocity (``G.ob_velocity``, m/s; ``G.ob_omega``, rad/s; world) and ``c_o`` its centre, the
+    midpoint of ``ob_center`` and ``ob_second`` (:attr:`qpnso.model.obstacles.Obstacle.centre`).  Every point of
+    the normal line gives the same value (``n·(ω × n) = 0``): the obstacle's own witness moves along ``n`` as
+    fast.  0 for a still obstacle."""
+    a, b = points[G.cap_a[c]], points[G.cap_b[c]]
+    v, w, c1, c2 = G.ob_velocity[o], G.ob_omega[o], G.ob_center[o], G.ob_second[o]
+    r0 = a[0] + t * (b[0] - a[0]) - 0.5 * (c1[0] + c2[0])
+    r1 = a[1] + t * (b[1] - a[1]) - 0.5 * (c1[1] + c2[1])
+    r2 = a[2] + t * (b[2] - a[2]) - 0.5 * (c1[2] + c2[2])
+    return (
+        n0 * (v[0] + w[1] * r2 - w[2] * r1) + n1 * (v[1] + w[2] * r0 - w[0] * r2) + n2 * (v[2] + w[0] * r1 - w[1] * r0)
+    )
+
+
+@njit(cache=True)
+def motion_tick(G):
+    """One tick of the obstacles' velocities gone by (in place on the keep-out record ``G``): each one's
+    ``ob_hold`` counts down, and a velocity whose ticks are spent is zeroed (the obstacle is still until it is
+    placed again).  An estimated velocity holds for the ticks it was measured over, so a volume placed once
+    and then left moves, as the rows see it, no farther than it did."""
+    for o in range(G.n_obstacles):
+        if G.ob_hold[o] > 0.0:
+            G.ob_hold[o] -= 1.0
+            if G.ob_hold[o] <= 0.0:
+                G.ob_hold[o] = 0.0
+                G.ob_velocity[o, :] = 0.0
+                G.ob_omega[o, :] = 0.0
 
 
 @njit(cache=True)

@@ -195,6 +195,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-n", type=int, default=3000, help="timed calls per row; fuzz: ticks (default 3000)")
     p.add_argument("--strategies", default=None, help="comma-separated strategies for 'tick', 'fuzz' (default all)")
     p.add_argument("--seed", type=int, default=0, help="fuzz: random seed (default 0)")
+    p.set_defaults(robot=None)  # fuzz: --robot may list several (default lwr4p,iiwa14,panda); else lwr4p
+    p.add_argument("--dt-ms", default=None, help="fuzz: comma-separated tick lengths in ms (default 1,4)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="fuzz: fresh processes at a time (each runs a shard of ticks, then each replay; 0: all in this "
+        "process, no fresh process; default 1)",
+    )
     p.add_argument(
         "--solver-time-budget-ms",
         type=float,

@@ -24,6 +24,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.what == "fuzz":
         return bench_fuzz(args)
+    args.robot = args.robot or "lwr4p"  # (the bench parser leaves it None: fuzz's default is every robot)
     robot = load_cli_robot(args, redundant=args.what != "cost")
     if args.what == "cost":
         rows = benchmark.bench_cost(robot, n=args.n)
@@ -40,21 +41,27 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def bench_fuzz(args: argparse.Namespace) -> int:
-    """``qpnso bench fuzz -n N``: N fuzzed closed-loop ticks (qpnso/lab/fuzz/); the Markdown table, the report
-    as JSON with ``--out``; exit status 1 if a must-hold check fails."""
+    """``qpnso bench fuzz -n N``: N fuzzed closed-loop ticks (qpnso/lab/fuzz/) over the robots of ``--robot``
+    (default the three), the tick lengths of ``--dt-ms`` (default 1 and 4 ms) and the strategies, in
+    ``--workers`` fresh processes at a time; the Markdown table, the report as JSON with ``--out``; exit status 1
+    if a must-hold check fails."""
     from qpnso.control.config import STRATEGIES
     from qpnso.lab.fuzz import FuzzConfig, run_fuzz
+    from qpnso.lab.fuzz.config import DTS, ROBOTS
 
     if args.out:
         output_path(args.out, "--out")
     offset = parse_vector(args.tool_offset, 3, "--tool-offset") if args.tool_offset else (0.0, 0.0, 0.1)
-    strategies = tuple(x.strip() for x in args.strategies.split(",") if x.strip()) if args.strategies else STRATEGIES
+    strategies = _names(args.strategies) or STRATEGIES
+    dts = tuple(1e-3 * x for x in parse_vector(args.dt_ms, None, "--dt-ms")) if args.dt_ms else DTS
     budget = None if args.solver_time_budget_ms is None else args.solver_time_budget_ms * 1e-3
     config = FuzzConfig(
         seed=args.seed,
         ticks=args.n,
         strategies=strategies,
-        robot=args.robot,
+        robots=_names(args.robot) or ROBOTS,
+        dts=dts,
+        workers=args.workers,
         tool_frame=args.tool_frame,
         tool_offset=tuple(offset),
         solver_time_budget=budget,
@@ -67,3 +74,8 @@ def bench_fuzz(args: argparse.Namespace) -> int:
     for line in failures:
         print(f"FAIL: {line}")
     return 1 if failures else 0
+
+
+def _names(text: str | None) -> tuple[str, ...]:
+    """A comma-separated list of names (empty when not given)."""
+    return tuple(x.strip() for x in text.split(",") if x.strip()) if text else ()

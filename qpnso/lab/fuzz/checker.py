@@ -9,7 +9,8 @@ Independence is the point: a check that reused the controller's own kinematics w
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 import pinocchio as pin
@@ -72,7 +73,7 @@ class TickChecker:
         solver_cpu_time: float = math.inf,
     ) -> bool:
         """Check one command given at ``q`` (rad): finite, velocity, joint limits, torque, solver time
-        (``cpu_time``, s: the CPU time of the whole ``step`` call; ``solver_cpu_time`` the solver's, from
+        (``cpu_time``, s: the CPU time of the whole ``step`` call, shown; ``solver_cpu_time`` the solver's, from
         :class:`SolverClock`: a tick over ``solve_time_max`` in wall time but not in the solver's CPU time
         was preempted).  Returns whether ``dq`` is finite (the plant can apply it)."""
         rep, cfg = self.report, self.config
@@ -82,8 +83,6 @@ class TickChecker:
         if timed:
             rep.solve_times.append(cmd.solve_time)
             rep.tick_times.append(cmd.tick_time)
-            if math.isfinite(cpu_time):
-                rep.tick_cpu_times.append(cpu_time)
         if cmd.solve_time > cfg.solve_time_max:
             key = "solve_time" if solver_cpu_time > cfg.solve_time_max else "preempted"
             rep.record(
@@ -161,6 +160,73 @@ class TickChecker:
         )
         return True
 
+    # ------------------------------------------------------- CPU, kernels
+    def tick_cpu(self, seconds: float, where: Where, inputs: dict, what: Callable[[], str]) -> None:
+        """A valid tick's whole ``step`` call took ``seconds`` of thread CPU time: kept in its robot and
+        strategy's group, and counted when over ``tick_cpu_max`` (the line holds a fraction of the ticks), with
+        ``what()`` the tick was."""
+        self.report.add_tick_cpu(where, seconds)
+        if seconds > self.config.tick_cpu_max:
+            self.report.record("tick_cpu", seconds, where, inputs, what())
+
+    def kernels_added(self, added: list[str], where: Where, inputs: dict) -> None:
+        """Kernel signatures (:class:`~qpnso.lab.fuzz.kernels.KernelWatch`) added by the step calls at ``where``:
+        one count each (nothing may compile after the constructor)."""
+        for signature in added:
+            self.report.record("compile", 1.0, where, inputs, f"added {signature}")
+
+    # -------------------------------------------------- command to command
+    def motion(self, history: CommandHistory, dq: np.ndarray, cmd: Command, where: Where, inputs: dict) -> None:
+        """The controller's new command ``dq`` (rad/s) against its previous ones since its reset (``history``,
+        which then takes ``dq``): a joint's change beyond ``ddq_max·dt`` (when the controller has a ``ddq_max``)
+        and a joint reversed from beyond ``reversal_speed`` one way to beyond it the other way within
+        ``reversal_ticks`` ticks (counted on the tick it arrives, once per tick)."""
+        recent = history.recent
+        if recent:
+            if history.ddq_max is None:
+                self.report.accel_unbounded += 1
+            else:
+                self._accel_bound(dq - recent[-1], history, cmd, where, inputs)
+            self._reversal(dq, recent, cmd, where, inputs)
+        history.push(dq)
+
+    def _accel_bound(self, step: np.ndarray, history: CommandHistory, cmd: Command, where: Where, inputs: dict) -> None:
+        cfg = self.config
+        self.report.accel_checked += 1
+        ddq_max = np.asarray(history.ddq_max, dtype=float)
+        bound = ddq_max * history.dt
+        over = np.abs(step) - (bound * (1.0 + cfg.accel_rtol) + cfg.accel_atol)
+        j = int(np.argmax(over))
+        if over[j] > 0.0:
+            self.report.record(
+                "accel_bound",
+                abs(step[j]) / bound[j],
+                where,
+                inputs,
+                f"joint {j + 1}: command changed by {step[j]:.6g} rad/s in one tick, bound ddq_max·dt "
+                f"{bound[j]:.6g} (ddq_max {ddq_max[j]:.6g} rad/s², dt {history.dt:g} s); status {cmd.status}",
+            )
+
+    def _reversal(self, dq: np.ndarray, recent: list[np.ndarray], cmd: Command, where: Where, inputs: dict) -> None:
+        v = self.config.reversal_speed
+        before = np.array(recent[-self.config.reversal_ticks :])
+        for sign in (1.0, -1.0):  # arrived beyond -v this tick, from beyond +v within the window (and the mirror)
+            arrived = (sign * dq < -v) & (sign * before[-1] >= -v)
+            came_from = np.any(sign * before > v, axis=0)
+            joints = np.flatnonzero(arrived & came_from)
+            if joints.size:
+                j = int(joints[np.argmax(np.abs(dq[joints]))])
+                swing = float(np.max(sign * before[:, j]) - sign * dq[j])
+                self.report.record(
+                    "reversal",
+                    swing,
+                    where,
+                    inputs,
+                    f"joint {j + 1}: command {before[:, j].round(4).tolist()} then {dq[j]:.4g} rad/s (a swing of "
+                    f"{swing:.4g} rad/s within {before.shape[0]} ticks); status {cmd.status}",
+                )
+                return
+
     # ----------------------------------------------------------------- ROM
     def rom(self, cmd: Command, previous: float | None, where: Where, inputs: dict) -> float:
         """How far the arm angle is outside ROM_t (rad, 0 inside); an excursion that grows from
@@ -232,6 +298,25 @@ class TickChecker:
             step = jac.T @ np.linalg.solve(jac @ jac.T + 1e-4 * np.eye(6), e)
             q = np.clip(q + step, self.q_min, self.q_max)
         return False
+
+
+@dataclass
+class CommandHistory:
+    """The joint commands (rad/s) a controller gave since its last reset, newest last (the last
+    ``keep`` of them), with its acceleration bound ``ddq_max`` (rad/s², None when it has none) and ``dt`` (s):
+    what :meth:`TickChecker.motion` compares a new command with."""
+
+    ddq_max: np.ndarray | None
+    dt: float
+    keep: int = 2
+    recent: list[np.ndarray] = field(default_factory=list)
+
+    def push(self, dq: np.ndarray) -> None:
+        self.recent = [*self.recent, np.array(dq, dtype=float)][-self.keep :]
+
+    def reset(self) -> None:
+        """The controller was reset (or its last step gave no command): the next command has no previous one."""
+        self.recent = []
 
 
 @dataclass

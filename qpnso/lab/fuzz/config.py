@@ -13,6 +13,11 @@ from typing import Callable
 from qpnso.control.config import STRATEGIES, Command
 from qpnso.errors import ConfigError
 
+ROBOTS = ("lwr4p", "iiwa14", "panda")
+"""The fuzz's default robots (the Panda needs the optional example-robot-data: skipped, said so, without it)."""
+DTS = (1e-3, 4e-3)
+"""The fuzz's default tick lengths (s): every robot and strategy runs at each."""
+
 Progress = Callable[[int, int], None]
 Observer = Callable[["Where", dict, "Command | None", "tuple[float, float]"], None]
 
@@ -49,9 +54,10 @@ class FuzzConfig:
     seed: int = 0
     ticks: int = 10_000  # valid closed-loop ticks in all (bad-input calls come on top)
     strategies: tuple[str, ...] = STRATEGIES
+    robots: tuple[str, ...] = ROBOTS  # episode E runs setting(E): its robot, dt and strategy
+    dts: tuple[float, ...] = DTS  # s, each controller's ControllerConfig.dt
     episode_ticks: int = 600
-    first_episode: int = 0  # replay: FuzzConfig(seed=S, first_episode=E, ticks=episode_ticks)
-    robot: str = "lwr4p"
+    first_episode: int = 0  # replay: the same config with first_episode=E, ticks=episode_ticks
     tool_offset: tuple[float, float, float] = (0.0, 0.0, 0.1)
     tool_frame: str | None = None
     compile: str | None = None  # ControllerConfig.compile (None: QPNSO_COMPILE or background)
@@ -82,6 +88,11 @@ class FuzzConfig:
     episode_seconds: float = 120.0  # wall time after which an episode is cut short (seconds-long ticks)
     max_seconds: float | None = None  # wall time after which the run stops (then a failure: ticks short)
     freeze_gc: bool = True  # build every controller first, then gc.collect(); gc.freeze() for the run
+    workers: int = 0  # 0: every episode in this process; N: shards in fresh (spawned) processes, N at a time,
+    # and the slow ticks' episodes replayed in fresh processes too
+    shard_ticks: int = 25_000  # with workers: ticks per fresh process (at least `workers` shards)
+    setup: str | None = None  # "module:function" called first in every fresh process (a tracer, a test's fault)
+    max_replayed_episodes: int = 40  # the slowest ticks' episodes replayed (the rest counted, not replayed)
     solver_time_budget: float | None = None  # s: every controller's ControllerConfig.solver_time_budget
     # thresholds of the checks
     joint_tol: float = 1e-9  # rad, rad/s
@@ -89,6 +100,12 @@ class FuzzConfig:
     drift_tol_m: float = 1e-6
     drift_tol_rad: float = 1e-6
     solve_time_max: float = 1e-3  # s
+    tick_cpu_max: float = 1e-3  # s of thread CPU time for a whole Controller.step call...
+    tick_cpu_fraction_max: float = 1e-3  # ...on fewer than this fraction of the valid ticks
+    accel_rtol: float = 1e-9  # relative to ddq_max·dt: the acceleration bound's tolerance...
+    accel_atol: float = 1e-12  # rad/s ...plus this
+    reversal_speed: float = 0.5  # rad/s: a joint's command from above this to below minus this (or back)...
+    reversal_ticks: int = 2  # ...within this many ticks is a reversal
     replays: int = 2  # each episode with a tick over solve_time_max is run again this many times (0: none)
     recovery_ticks: int = 100
     recovery_tol_m: float = 1e-4
@@ -97,6 +114,8 @@ class FuzzConfig:
 
     def __post_init__(self) -> None:
         self.strategies = tuple(self.strategies)
+        self.robots = tuple(self.robots)
+        self.dts = tuple(float(dt) for dt in self.dts)
         self.probe_kinds = tuple(self.probe_kinds)
         self.rom_strategies = tuple(self.rom_strategies)
         self.tool_offset = tuple(float(x) for x in self.tool_offset)  # type: ignore[assignment]
@@ -110,13 +129,31 @@ class FuzzConfig:
             raise ConfigError("probe_burst_max must be >= 1 (p_probe_burst = 0 sends no bad inputs)")
         if self.replays < 0:
             raise ConfigError("replays must be >= 0")
-        if self.ticks < 1 or self.episode_ticks < 1:
-            raise ConfigError("ticks and episode_ticks must be >= 1")
+        if self.ticks < 1 or self.episode_ticks < 1 or self.shard_ticks < 1:
+            raise ConfigError("ticks, episode_ticks and shard_ticks must be >= 1")
+        if not self.robots or not self.dts or not all(0 < dt <= 0.1 for dt in self.dts):
+            raise ConfigError(f"robots {self.robots} and dts {self.dts} (s) must be given, each dt in (0, 0.1]")
+        if self.workers < 0 or self.reversal_ticks < 1 or self.max_replayed_episodes < 0:
+            raise ConfigError("workers and max_replayed_episodes must be >= 0, reversal_ticks >= 1")
         if self.p_start_near_limit + self.p_start_singular > 1 or self.p_twist + self.p_pull + self.p_overshoot > 1:
             raise ConfigError("start and phase probabilities must each sum to <= 1")
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def setting(self, episode: int) -> tuple[str, float, str]:
+        """Episode ``episode``'s robot, dt (s) and strategy: the strategies change every episode, the
+        (robot, dt) pair every ``len(strategies)`` episodes, so any ``len(robots)·len(dts)·len(strategies)``
+        consecutive episodes run every combination once."""
+        strategy = self.strategies[episode % len(self.strategies)]
+        pairs = [(robot, dt) for robot in self.robots for dt in self.dts]
+        robot, dt = pairs[(episode // len(self.strategies)) % len(pairs)]
+        return robot, dt, strategy
+
+    def settings_of(self, first: int, stride: int) -> list[tuple[str, float, str]]:
+        """Every setting the episodes ``first, first + stride, ...`` run (in the order they first come)."""
+        period = len(self.robots) * len(self.dts) * len(self.strategies)
+        return list(dict.fromkeys(self.setting(first + stride * k) for k in range(period)))
 
 
 @dataclass
@@ -130,9 +167,12 @@ class Where:
     tick: int = 0  # valid tick within the episode
     phase: str = ""  # hold | twist | pull | overshoot; "probe <kind>" for a bad input
     recent: str = ""  # the last disturbance before this tick
+    robot: str = ""
+    dt: float = 0.0  # s
 
     def short(self) -> str:
+        robot = f"{self.robot} dt {1e3 * self.dt:g} ms " if self.robot else ""
         return (
-            f"{self.strategy}, seed {self.seed} episode {self.episode} tick {self.tick}, start {self.start}, "
+            f"{robot}{self.strategy}, seed {self.seed} episode {self.episode} tick {self.tick}, start {self.start}, "
             f"phase {self.phase}" + (f", after {self.recent}" if self.recent else "")
         )

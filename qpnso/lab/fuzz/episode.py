@@ -1,7 +1,8 @@
-"""One episode: a kinematic closed loop (``q ← q + dt·cmd.dq``) of one strategy from one random start,
-through its phases, with bad-input bursts interleaved; every valid tick is stepped, checked, and fed to the
-drift and recovery bookkeeping.  :class:`SolverClock` measures the solver's own CPU time, so a tick that
-was slow only because the machine preempted it is told apart from a slow solve.
+"""One episode: a kinematic closed loop (``q ← q + dt·cmd.dq``) of one robot, dt and strategy from one random
+start, through its phases, with bad-input bursts interleaved; every valid tick is stepped, timed (the whole
+``step`` call's thread CPU time), checked (the command, its change from the previous one, the kernels it
+compiled), and fed to the drift and recovery bookkeeping.  :class:`SolverClock` measures the solver's own CPU
+time, so a tick that was slow only because the machine preempted it is told apart from a slow solve.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 
 from qpnso.control.config import Command, Status
 from qpnso.errors import QpnsoError
-from qpnso.lab.fuzz.checker import HoldMonitor, Recovery, end_recovery, update_recovery
+from qpnso.lab.fuzz.checker import CommandHistory, HoldMonitor, Recovery, end_recovery, update_recovery
 from qpnso.lab.fuzz.config import Where
 from qpnso.lab.fuzz.phases import Phase, advance_reference, plan_phases, twist_at
 from qpnso.lab.fuzz.probes import _outside, limit_distance, make_probe, send_probe
@@ -56,15 +57,21 @@ class Episode:
 
     def __init__(self, fuzzer: "Fuzzer", index: int, ticks: int) -> None:
         cfg = fuzzer.config
-        self.fuzzer, self.config, self.checker, self.report = fuzzer, cfg, fuzzer.checker, fuzzer.report
+        self.fuzzer, self.config, self.report = fuzzer, cfg, fuzzer.report
         self.rng = np.random.default_rng([cfg.seed, index])
-        self.strategy = cfg.strategies[index % len(cfg.strategies)]
-        self.ctrl = fuzzer.controller(self.strategy)
-        self.clock = fuzzer.clocks[self.strategy]
-        self.dt = self.ctrl.config.dt
+        robot, dt, self.strategy = cfg.setting(index)
+        self.ctrl = fuzzer.controller(robot, dt, self.strategy)
+        self.clock = fuzzer.clocks[robot, dt, self.strategy]
+        self.checker = fuzzer.checker(robot)
+        self.dt = self.checker.dt = self.ctrl.config.dt
+        self.checker.correction_speed = self.ctrl.config.pose_correction_speed
+        self.history = CommandHistory(getattr(self.ctrl, "ddq_max", None), self.dt, keep=cfg.reversal_ticks)
+        self.cpu_by_tick: list[float] = []  # s, each valid tick's whole step (read by replays)
+        self.kernels_by_tick: dict[int, list[str]] = {}  # kernel signatures added by each tick's step
         kind, self.q = random_start(self.rng, self.checker)
         singular = start_is_singular(self.checker, self.q)
-        self.where = Where(cfg.seed, index, self.strategy, kind + (" (singular)" if singular else ""))
+        start = kind + (" (singular)" if singular else "")
+        self.where = Where(cfg.seed, index, self.strategy, start, robot=robot, dt=dt)
         self.check_drift = not singular
         self.ticks = ticks
         self.phases = plan_phases(self.rng, cfg, ticks)
@@ -97,8 +104,12 @@ class Episode:
             self._valid_tick(phase, k)
             progress()
         end_recovery(self.pending, self.tick, self.report)
+        self.checker.kernels_added(
+            self.fuzzer.kernels.added(full=True), replace(self.where, phase="episode end"), {}
+        )  # (kernels of a module first imported in the episode)
 
     def _reset(self) -> bool:
+        self.history.reset()
         try:
             self.ctrl.reset(self.q)
         except Exception as exc:  # noqa: BLE001 - a start within the limits must be accepted
@@ -107,6 +118,8 @@ class Episode:
             else:
                 record_exception(self.report, exc, replace(self.where, phase="reset"), {"q0": self.q})
             return False
+        finally:
+            self.checker.kernels_added(self.fuzzer.kernels.added(), replace(self.where, phase="reset"), {"q0": self.q})
         return True
 
     def _schedule(self) -> Iterator[tuple[Phase, int]]:
@@ -159,10 +172,14 @@ class Episode:
                 self.checker,
                 self.where,
                 self.clock,
+                self.history,
             )
             for kind in kinds
         ]
         what = f"bad inputs {','.join(kinds)} before tick {self.tick}"
+        self.checker.kernels_added(
+            self.fuzzer.kernels.added(), replace(self.where, phase=f"probes {','.join(kinds)}"), {"probes": kinds}
+        )
         if "accepted" in outcomes:  # the controller acted on a q the plant never had; a refused one must not count
             self.hold.glitch()
         if self.pending is None:
@@ -184,15 +201,17 @@ class Episode:
         if self.rng.random() < cfg.p_probe_burst:
             self._probe_burst()
         self.clock.take()  # bad inputs may have called the solver: not this tick's
-        cpu = time.thread_time()
-        cmd = self._step(twist, dq_in, inputs)
-        cpu = time.thread_time() - cpu
-        self.report.count_tick(self.strategy)
+        cmd, cpu = self._step(twist, dq_in, inputs)
+        solver_cpu = self.clock.take()
+        self.report.count_tick(where)
         if cmd is not None and cmd.status & Status.QP_DEADLINE:
             self.report.deadline_ticks += 1
-        finite = cmd is not None and chk.command(
-            cmd, self.q, where, inputs, cpu_time=cpu, solver_cpu_time=self.clock.take()
-        )
+        self._timed(cmd, cpu, solver_cpu, inputs)
+        finite = cmd is not None and chk.command(cmd, self.q, where, inputs, cpu_time=cpu, solver_cpu_time=solver_cpu)
+        if cmd is not None and finite:
+            chk.motion(self.history, np.asarray(cmd.dq, dtype=float), cmd, where, inputs)
+        else:  # no command the plant can apply: the next one has none to be compared with
+            self.history.reset()
         self.failures_in_row = 0 if finite else self.failures_in_row + 1
         if cmd is not None and self.strategy in cfg.rom_strategies:
             self.rom_out = chk.rom(cmd, self.rom_out, where, inputs)
@@ -206,16 +225,35 @@ class Episode:
         self.reference = advance_reference(self.reference, twist, self.dt)
         self.tick += 1
 
-    def _step(self, twist: np.ndarray | None, dq_in: np.ndarray | None, inputs: dict) -> Command | None:
+    def _step(self, twist: np.ndarray | None, dq_in: np.ndarray | None, inputs: dict) -> tuple[Command | None, float]:
+        """The tick's ``step`` call: its command (None when it raised) and its thread CPU time (s)."""
+        start = time.thread_time_ns()
         try:
             cmd = self.ctrl.step(self.q, dq=dq_in, tool_twist=twist)
         except QpnsoError as exc:
+            cpu = 1e-9 * (time.thread_time_ns() - start)
             self.report.record("valid_refused", 1.0, self.where, inputs, f"{type(exc).__name__}: {exc}")
         except Exception as exc:  # noqa: BLE001
+            cpu = 1e-9 * (time.thread_time_ns() - start)
             record_exception(self.report, exc, self.where, inputs)
         else:
-            return cmd
-        return None
+            return cmd, 1e-9 * (time.thread_time_ns() - start)
+        return None, cpu
+
+    def _timed(self, cmd: Command | None, cpu: float, solver_cpu: float, inputs: dict) -> None:
+        """The tick's whole-step CPU time (s) and the kernel signatures its step added, each checked; what the
+        tick was (status, solver CPU time, kernels) goes with a slow tick's count."""
+        added = self.fuzzer.kernels.added()
+        self.checker.kernels_added(added, self.where, inputs)
+        self.cpu_by_tick.append(cpu)
+        if added:
+            self.kernels_by_tick[self.tick] = added
+
+        def what() -> str:
+            status = "raised" if cmd is None else f"status {cmd.status}, solve_time {cmd.solve_time:.4g} s"
+            return f"{status}, solver CPU time {solver_cpu:.4g} s" + (f"; added {', '.join(added)}" if added else "")
+
+        self.checker.tick_cpu(cpu, self.where, inputs, what)
 
 
 def on_reference(cmd: Command | None, error_m: float, tol_m: float) -> bool:

@@ -19,7 +19,7 @@ import pinocchio as pin
 
 from qpnso.control.controller import Controller
 from qpnso.errors import QpnsoError
-from qpnso.lab.fuzz.checker import TickChecker
+from qpnso.lab.fuzz.checker import CommandHistory, TickChecker
 from qpnso.lab.fuzz.config import FuzzConfig, Where
 from qpnso.lab.fuzz.report import record_exception
 from qpnso.model.robot import Robot
@@ -132,11 +132,17 @@ def _pose_probe(kind: str, how: str, rng: np.random.Generator, q: np.ndarray, ro
 
 
 def send_probe(
-    ctrl: Controller, probe: Probe, checker: TickChecker, where: Where, clock: SolverClock | None = None
+    ctrl: Controller,
+    probe: Probe,
+    checker: TickChecker,
+    where: Where,
+    clock: SolverClock | None = None,
+    history: CommandHistory | None = None,
 ) -> str:
     """Call ``ctrl.step`` with a bad input: ``refused`` (a QpnsoError), ``foreign`` (another exception,
     counted with its traceback) or ``accepted`` (counted if it had to be refused; its command checked, with
-    its CPU times when ``clock`` is the controller's :class:`SolverClock`)."""
+    its CPU times when ``clock`` is the controller's :class:`SolverClock`, and against the controller's previous
+    commands when ``history`` holds them: an accepted command is the one the next tick's is bounded from)."""
     rep = checker.report
     where = replace(where, phase=f"probe {probe.kind}")
     inputs = {"probe": probe.kind, "description": probe.description, **probe.kwargs}
@@ -167,5 +173,8 @@ def send_probe(
                 cpu_time=cpu,
                 solver_cpu_time=math.inf if clock is None else clock.take(),
             )
+        dq = np.asarray(cmd.dq, dtype=float)
+        if history is not None and dq.shape == (checker.robot.nq,) and np.all(np.isfinite(dq)):
+            checker.motion(history, dq, cmd, where, inputs)
     rep.count_probe(probe.kind, outcome)
     return outcome

@@ -53,8 +53,8 @@ _COMPUTED_AFTER = ("mass", "friction_force", "tool_position_error", "tool_rotati
 
 @dataclass(frozen=True)
 class ObstacleTick:
-    """A tick whose status had ``OBSTACLE`` (a link could not keep its margin from an obstacle, or overlapped
-    it), as the controller reported it: the tick's index (0-based) and time ``t`` (s), the link (its capsule's
+    """A tick whose status had ``OBSTACLE`` (a link inside its margin of an obstacle, or unable to keep it), as
+    the controller reported it: the tick's index (0-based) and time ``t`` (s), the link (its capsule's
     name), the obstacle (its index in the controller's obstacles), the controller's clearance of that pair (m)
     and the command's message; ``data_row`` the trajectory's data row the tick follows (:func:`data_row`; None:
     no trajectory file, e.g. a simulation)."""

@@ -7,7 +7,7 @@ A capsule–obstacle pair nearer than the influence distance ``d_i`` gives the v
 the row is ``∇d·q̇ ≥ damper + n·v_ob``, ``n·v_ob`` how fast the obstacle's surface comes toward the link along
 the normal (from its velocity and angular velocity in the keep-out record,
 :func:`qpnso.elbow.clearance.obstacle_approach`; 0 for a still one).  Without that term a volume moving at
-``v`` toward the arm held the link about ``v/gain`` inside the margin (18 mm at 10 cm/s).
+``v`` toward the arm held the link up to ``v/gain`` inside the margin (24 mm at 10 cm/s, measured).
 ``∇d = nᵀ((1 − t) J_a + t J_b)`` is the distance's exact gradient: ``n`` the unit normal from the obstacle,
 ``t`` the witness on the capsule's axis ``a + t(b − a)`` (a point of one link: its Jacobian is the ends'
 blend), ``J_a``, ``J_b`` the ends' Jacobians from the tick's state.  The rows are level 2's (the tool's null

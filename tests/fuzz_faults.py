@@ -57,6 +57,18 @@ def compile_in_a_solve(patch: Patch = setattr) -> None:
     patch(HierarchicalQP, "solve_problem", compiling)
 
 
+_INSTALLED: set[str] = set()
+
+
+def compile_in_a_solve_once() -> None:
+    """:func:`compile_in_a_solve` installed in this process unless it already is: the ``FuzzConfig.setup`` of a run
+    with workers (a process reused for a second task would compile nothing the second time, as a real once-per-process
+    compile; a new kernel made there again would compile again and hide it)."""
+    if "compile_in_a_solve" not in _INSTALLED:
+        _INSTALLED.add("compile_in_a_solve")
+        compile_in_a_solve()
+
+
 def command_changed(patch: Patch, ticks: dict[int, Callable[[np.ndarray, np.ndarray, Controller], np.ndarray]]) -> None:
     """The command of the ``step`` calls numbered in ``ticks`` (0: the first after the last constructor) replaced
     by ``ticks[k](dq, previous dq returned, controller)``, whatever the controller would have sent."""

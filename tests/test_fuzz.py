@@ -571,7 +571,7 @@ def test_a_kernel_compiled_in_a_tick_is_reproduced_only_by_fresh_processes(monke
     with monkeypatch.context() as patch:
         fuzz_faults.compile_in_a_solve(functools.partial(patch.setattr, raising=False))
         here = run_fuzz(config)
-    fresh = run_fuzz(replace(config, workers=1, setup="fuzz_faults:compile_in_a_solve"))
+    fresh = run_fuzz(replace(config, workers=1, setup="fuzz_faults:compile_in_a_solve_once"))
     added = [f"{fuzz_faults.KERNEL}(float64)"]
     for report in (here, fresh):
         compiled = report.first["compile"]

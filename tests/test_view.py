@@ -26,7 +26,7 @@ import qpnso
 from qpnso.cli import main
 from qpnso.control.offline import scene_record
 from qpnso.elbow.arm_angle import elbow_circle, elbow_points
-from qpnso.errors import InputError
+from qpnso.errors import InputError, JointLimitError
 from qpnso.model.collision import link_capsules
 from qpnso.model.robot import load_robot_spec, robot_spec
 
@@ -35,17 +35,31 @@ zstandard = pytest.importorskip("zstandard")
 msgspec = pytest.importorskip("msgspec")
 
 from qpnso.view import Replay, load_replay  # noqa: E402
-from qpnso.view.geometry import arc  # noqa: E402
-from qpnso.view.scene import INTERVAL_OFFSET_M, free_port, html_page, readout, serve, write_html  # noqa: E402
-
+from qpnso.view.geometry import arc, framing_distance, inside_capsules  # noqa: E402
+from qpnso.view.scene import (  # noqa: E402
+    INTERVAL_OFFSET_M,
+    REFERENCE,
+    TOOL_PATH,
+    free_port,
+    html_page,
+    path_points,
+    readout,
+    serve,
+    write_html,
+)
 
 # ------------------------------------------------------------------ fixtures
+RUN_S = 6.0
+"""s of scenario B run for the tests: long enough for the tool path to be seen on a 640-pixel screenshot
+(10 cm of path, 3 cm across; 1.5 s gave 1 cm)."""
+
+
 @pytest.fixture(scope="module")
 def run():
-    """A short hands-on run of scenario B: 1.5 s of the plant (one run for every test here: the suite's time)."""
+    """A short hands-on run of scenario B: RUN_S of the plant (one run for every test here: the suite's time)."""
     from qpnso.lab.scenarios import simulate_scenario
 
-    return simulate_scenario("B", "qp", 1.5 / 36.14)
+    return simulate_scenario("B", "qp", RUN_S / 36.14)
 
 
 @pytest.fixture(scope="module")
@@ -151,6 +165,44 @@ def test_arcs_are_cut_half_a_turn_around_the_arm_angle():
     assert arc(3.5, 4.0, 1.0, 0.0) is None and arc(0.5, 0.2, 1.0, 0.0) is None and arc(np.nan, 1.0, 1.0, 0.0) is None
 
 
+def test_inside_capsules_is_the_distance_to_the_capsule_axis(robots, rng):
+    """Against the control tick's segment–point kernel (qpnso.model.distance.segment_point): a point is inside
+    a capsule exactly when its distance to the capsule's axis is below the radius (points scattered around
+    every capsule's middle, about half of them inside)."""
+    from qpnso.model.distance import segment_point
+
+    for robot in robots.values():
+        caps = link_capsules(robot)
+        q = rng.uniform(robot.q_min, robot.q_max)
+        a, b = caps.segments(robot, q)
+        points = (0.5 * (a + b))[:, None, :] + rng.normal(scale=max(caps.radius), size=(caps.count, 40, 3))
+        points = points.reshape(-1, 3)
+        inside = inside_capsules(robot, q, points)
+        for c in range(caps.count):
+            distance = np.array([segment_point(a[c], b[c], p)[0] for p in points])
+            assert np.array_equal(inside[c], distance < caps.radius[c]), (robot.name, c)
+        assert 0.1 < inside.any(axis=0).mean() < 0.9
+
+
+def test_framing_distance_puts_every_point_in_view(rng):
+    """A pinhole camera that far from the target, looking at it with z up: every point in front of it and
+    within half the field of view of its axis, across and up, and one point on that edge (no nearer camera
+    keeps them all in view)."""
+    points = rng.normal(size=(300, 3)) * [0.3, 0.2, 0.4] + [0.4, -0.1, 0.5]
+    target, direction, fov = np.array([0.35, -0.05, 0.45]), np.array([0.9, -0.9, 0.5]), np.radians(75.0)
+    distance = framing_distance(points, target, direction, fov)
+    eye = target + distance * direction / np.linalg.norm(direction)
+    forward = (target - eye) / distance
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    rel = points - eye
+    depth = rel @ forward
+    assert np.all(depth > 0)
+    angle = np.maximum(np.abs(np.arctan2(rel @ right, depth)), np.abs(np.arctan2(rel @ up, depth)))
+    assert angle.max() == pytest.approx(0.5 * fov, abs=1e-12)
+
+
 def test_robot_spec_loads_the_same_kinematics(rng):
     """A robot record gives back the tool frame (with a rotated offset) to round-off."""
     offset = pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 0.3), np.array([0.01, -0.02, 0.15]))
@@ -186,6 +238,73 @@ def test_old_result_file_needs_the_robot(run, tmp_path, lwr):
     with pytest.raises(InputError, match="--robot"):
         load_replay(path)
     assert load_replay(path, lwr).obstacles == ()
+
+
+def test_a_robot_that_contradicts_the_record_is_refused(result_file, robots):
+    """The file records the LWR4+ with its tool point at the flange: another robot (by name), or the LWR4+ with
+    the tool elsewhere, is refused; the recorded robot itself is accepted."""
+    for name in ALL_ROBOTS[1:]:
+        with pytest.raises(InputError, match=f"recorded on lwr4p, not {name}: leave --robot out"):
+            load_replay(result_file, robots[name])
+    longer = qpnso.load_robot("lwr4p", tool_offset=pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.1])))
+    with pytest.raises(InputError, match=r"tool at tool \+ \(0, 0, 0\) m, not at tool \+ \(0, 0, 0\.1\) m"):
+        load_replay(result_file, longer)
+    assert load_replay(result_file, robots["lwr4p"]).robot is robots["lwr4p"]
+
+
+@pytest.fixture(scope="module")
+def old_file(run, tmp_path_factory) -> Path:
+    """The run saved without its scene record (a file written before qpnso recorded it)."""
+    return replace(run, scene={}).save(tmp_path_factory.mktemp("old") / "old.npz")
+
+
+def test_an_old_file_on_a_robot_whose_limits_it_breaks_is_refused(run, lwr, tmp_path):
+    """Without a record, a given robot is refused when on more than half of the ticks a recorded joint is
+    beyond its limits by more than the controller's tolerance (2°): JointLimitError naming the joint, its value
+    and the first such tick.  On fewer (a run with a larger tolerance, bringing the joint back) it is drawn.
+    Joint 7 is moved: it turns the flange about its own axis, so the recorded tool point still fits."""
+    n = len(run.arrays["t"])
+    for start, refused in ((n // 2 - 10, True), (n // 2 + 10, False)):
+        q = run.arrays["q"].copy()
+        q[start:, 6] = lwr.q_max[6] + np.radians(2.5)
+        path = replace(run, arrays={**run.arrays, "q": q}, scene={}).save(tmp_path / f"from_{start}.npz")
+        if refused:
+            value = f"{np.degrees(q[start, 6]):.4g}°"
+            message = (
+                rf"cannot be a run of lwr4p: at tick {start} \(t = .* s\) q\[6\] \({lwr.joint_names[6]}\) = {value}"
+            )
+            with pytest.raises(JointLimitError, match=message):
+                load_replay(path, lwr)
+        else:
+            assert np.array_equal(load_replay(path, lwr).q, q)
+
+
+@pytest.mark.skipif("panda" not in ALL_ROBOTS, reason="the Panda needs example-robot-data")
+def test_an_old_lwr4p_file_on_the_panda_is_refused(old_file, robots):
+    """Every tick of the LWR4+'s run is outside the Panda's limits (its joint 4 bends the other way)."""
+    with pytest.raises(JointLimitError, match=r"cannot be a run of panda: at tick 0 .*panda_joint\d.* of \d+ ticks"):
+        load_replay(old_file, robots["panda"])
+
+
+def test_an_old_file_on_another_arm_or_tool_is_refused_by_the_tool_point(old_file, robots):
+    """The iiwa's limits hold the LWR4+'s run, but its tool point at the recorded q is not the recorded one;
+    nor is the LWR4+'s with a 10 cm tool: both refused, naming the first tick and the distance."""
+    with pytest.raises(InputError, match=r"cannot be a run of iiwa14 with this tool: at tick 0 .* is \d"):
+        load_replay(old_file, robots["iiwa14"])
+    longer = qpnso.load_robot("lwr4p", tool_offset=pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.1])))
+    with pytest.raises(InputError, match=r"tool point at the recorded q is 0\.1 m from the recorded one"):
+        load_replay(old_file, longer)
+    assert load_replay(old_file, robots["lwr4p"]).robot is robots["lwr4p"]
+
+
+def test_cli_view_refuses_a_robot_that_contradicts_the_file(result_file, old_file, tmp_path, capsys):
+    """One line on stderr, exit 2, nothing written."""
+    out = tmp_path / "run.html"
+    for path, message in ((result_file, "recorded on lwr4p, not iiwa14"), (old_file, "cannot be a run of iiwa14")):
+        assert main(["view", str(path), "--robot", "iiwa14", "--html", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1
+    assert not out.exists()
 
 
 @pytest.mark.parametrize(
@@ -351,6 +470,43 @@ def test_page_draws_the_room_and_paths(result_file):
         assert np.allclose(points[0, 0], path[0], atol=1e-6) and np.allclose(points[-1, 1], path[-1], atol=1e-6)
 
 
+def within(a: np.ndarray, b: np.ndarray, radius: float, points: np.ndarray) -> np.ndarray:
+    """Which ``points`` lie inside the capsule of axis ``a``–``b`` and ``radius`` (m): the distance to their
+    projection on the axis, clamped to its ends, below the radius."""
+    axis = b - a
+    s = np.clip((points - a) @ axis / max(axis @ axis, 1e-300), 0.0, 1.0)
+    return np.linalg.norm(points - (a + s[:, None] * axis), axis=1) < radius
+
+
+def test_page_paths_show_through_every_capsule_that_holds_them(page):
+    """With the tool point at the flange (scenario B), the arm's capsules hold most of the drawn tool path and
+    reference at every frame, so an opaque arm hides them; in the page, every capsule that holds a point of
+    either at some frame is see-through (its opacity below 1), so that no point is inside an opaque capsule at
+    any frame, and the others are opaque; both paths are drawn at a constant width on the screen."""
+    replay, html = page
+    record, buffers = recording(html)
+    nodes = states(record)[-1][1]
+    drawn = [array(buffers, nodes[f"/paths/{n}"]["props"]["points"]).reshape(-1, 3) for n in ("tool", "reference")]
+    points = np.vstack(drawn).astype(float)
+    caps = link_capsules(replay.robot)
+    frames = replay.frames(20.0)
+    inside = np.zeros((len(frames), caps.count, len(points)), dtype=bool)
+    for f, k in enumerate(frames):
+        a, b = caps.segments(replay.robot, replay.q[k])
+        inside[f] = [within(a[c], b[c], caps.radius[c], points) for c in range(caps.count)]
+    held_by_any = inside.any(axis=1).mean(axis=1)
+    assert held_by_any.min() > 0.5, "the premise: the capsules hold most of the paths"
+    opacity = {int(n.rsplit("_", 1)[1]): nodes[n]["props"]["opacity"] for n in nodes if "/capsule_" in str(n)}
+    see_through = np.array([opacity[c] is not None and opacity[c] < 1.0 for c in range(caps.count)])
+    assert np.array_equal(see_through, inside.any(axis=(0, 2)))
+    hidden = inside[:, ~see_through].any(axis=1).mean(axis=1)
+    print(f"path points inside a capsule: {held_by_any.mean():.3f} on average, {hidden.max():.3f} in an opaque one")
+    assert hidden.max() == 0.0
+    for name in ("tool", "reference"):
+        assert nodes[f"/paths/{name}"]["props"]["thickness_units"] == "screen"
+    assert set(path_points(replay)) == {"tool", "reference"}
+
+
 def test_page_is_one_file_with_no_address_to_fetch(page, tmp_path):
     """No script, style or image is loaded from elsewhere; the page is written where asked."""
     replay, html = page
@@ -410,6 +566,7 @@ def test_cli_view_writes_a_page(result_file, tmp_path, capsys):
         (["view", "x.npz", "--strategy", "qp", "--ignore-obstacles"], "--strategy, --ignore-obstacles do not apply"),
         (["view", "--scenario", "B", "--robot", "iiwa14"], "--robot do not apply to a scenario"),
         (["view", "--scenario", "B", "--duration-scale", "-1"], "--duration-scale"),
+        (["view", "x.npz", "--tool-offset", "0,0,0.1"], "--tool-frame and --tool-offset apply with --robot"),
     ],
 )
 def test_cli_view_refuses_bad_input(argv, message, capsys):
@@ -424,28 +581,57 @@ def test_cli_view_without_viser_says_how_to_install(monkeypatch, result_file, ca
 
 
 # ------------------------------------------------------------ real browser
-def arm_pixels(png: bytes) -> int:
-    """How many pixels of a screenshot have the arm's orange, lit or shaded (not the red box or paths, not viser's
-    orange notice stripe along the left edge)."""
+def colour_pixels(png: bytes) -> dict[str, int]:
+    """How many pixels of a screenshot have each colour the browser test looks for, outside viser's orange
+    notice stripe along the left edge: ``arm``, the arm's orange, lit or shaded (not the red box); ``tool`` and
+    ``reference``, the hues of :data:`PATH_HUES` (the paths' colours, pure or seen through a see-through
+    capsule's orange), saturated and not dark (no other node of scenario B's scene has those hues)."""
     import io
 
     import matplotlib.image
+    from matplotlib.colors import rgb_to_hsv
 
-    r, g, b = np.moveaxis((matplotlib.image.imread(io.BytesIO(png))[..., :3] * 255).astype(int), -1, 0)
-    orange = (r > 150) & (r - g > 50) & (g - b > 30)
-    orange[:, :30] = False
-    return int(orange.sum())
+    rgb = matplotlib.image.imread(io.BytesIO(png))[..., :3]
+    r, g, b = np.moveaxis((rgb * 255).astype(int), -1, 0)
+    hue, saturation, value = np.moveaxis(rgb_to_hsv(rgb), -1, 0)
+    masks = {"arm": (r > 150) & (r - g > 50) & (g - b > 30)}
+    for name, (lo, hi) in PATH_HUES.items():
+        masks[name] = (lo <= 360 * hue) & (360 * hue <= hi) & (saturation >= 0.2) & (value >= 0.35)
+    return {name: int(mask[:, 30:].sum()) for name, mask in masks.items()}
+
+
+PATH_HUES = {"tool": (290.0, 345.0), "reference": (150.0, 200.0)}
+"""Hue bands (degrees) of the tool path's magenta and the reference's cyan in a screenshot: the pure colours
+(300°, 189°) and their mixtures with 30 % of the see-through capsules' orange (measured: about 327° and 160°)."""
+PATH_PIXELS_MIN = 20
+"""Pixels of each path's colour the screenshot must show (6 s of scenario B at 640×480: 56 and 47 measured;
+with the paths hidden in opaque capsules 2 and 0, without the paths 0 and 0)."""
+
+
+def test_path_hues_hold_the_scene_colours():
+    from matplotlib.colors import rgb_to_hsv
+
+    for name, colour in (("tool", TOOL_PATH), ("reference", REFERENCE)):
+        hue = 360 * rgb_to_hsv(np.array(colour) / 255)[0]
+        assert PATH_HUES[name][0] <= hue <= PATH_HUES[name][1]
+
+
+def visible(counts: dict[str, int]) -> bool:
+    """The arm, the tool path and the reference all drawn (the browser test's bars)."""
+    return counts["arm"] > 2000 and min(counts["tool"], counts["reference"]) >= PATH_PIXELS_MIN
 
 
 @pytest.mark.skipif(headless.CHROMIUM is None, reason="no Chromium installed (apt-get install chromium)")
 def test_page_of_scenario_b_opens_in_chromium_without_network(page, tmp_path):
     """A scenario B run's page, opened from a file in headless Chromium with every network address refused,
-    draws the arm: a screenshot (its path printed) has at least 2000 pixels of the arm's orange within 90 s."""
+    draws the arm, the tool path and its reference: a screenshot (its path printed) has more than 2000 pixels
+    of the arm's orange and at least PATH_PIXELS_MIN of each path's colour within 90 s."""
     path = tmp_path / "B.html"
     path.write_text(page[1])
-    png = headless.screenshot_when(path, lambda png: arm_pixels(png) > 2000, tmp_path / "profile")
+    png = headless.screenshot_when(path, lambda png: visible(colour_pixels(png)), tmp_path / "profile")
     out = Path(os.environ.get("QPNSO_TEST_OUTPUT", tmp_path)) / "view_scenario_B.png"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_bytes(png)
-    print(f"screenshot: {out} ({arm_pixels(png)} pixels of the arm's colour)")
-    assert arm_pixels(png) > 2000
+    counts = colour_pixels(png)
+    print(f"screenshot: {out} (pixels of the arm's, the tool path's and the reference's colours: {counts})")
+    assert visible(counts), counts

@@ -140,7 +140,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=20.0, help="frames per second of the page or timeline (default 20)")
     p.add_argument("--host", default="127.0.0.1", help="the live server's address (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="the live server's port (default 8080)")
-    p.add_argument("--robot", default=None, help="a file without a robot record: lwr4p, iiwa14, panda or a URDF")
+    p.add_argument(
+        "--robot",
+        default=None,
+        help="a file without a robot record: lwr4p, iiwa14, panda or a URDF (refused when it contradicts the file)",
+    )
     p.add_argument("--tool-frame", default=None, help="with --robot: frame the tool is mounted on")
     p.add_argument("--tool-offset", default=None, help="with --robot: tool point in that frame, x,y,z in metres")
     p.add_argument("--obstacles", default=None, help="TOML file of [[obstacles]] drawn instead of the file's")

@@ -301,6 +301,8 @@ def cmd_view(args: argparse.Namespace) -> int:
             args.ignore_obstacles,
         )
     else:
+        if not args.robot and (args.tool_frame or args.tool_offset):
+            raise InputError("--tool-frame and --tool-offset apply with --robot")
         robot = load_cli_robot(args, redundant=True) if args.robot else None
         obstacles = read_obstacles(args.obstacles) if args.obstacles else None
         replay = load_replay(args.result, robot, obstacles)

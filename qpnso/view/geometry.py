@@ -49,6 +49,29 @@ def capsule_shapes(robot: Robot) -> tuple[CapsuleShape, ...]:
     return tuple(shapes)
 
 
+def inside_capsules(robot: Robot, q: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Which of ``points`` (k, 3; m, world) lie inside each link capsule at ``q`` (rad): (capsules, k) bool, a
+    point inside when its distance to the capsule's axis segment (its projection clamped to the ends) is below
+    the capsule's radius."""
+    caps = link_capsules(robot)
+    a, b = caps.segments(robot, q)
+    axis = b - a
+    rel = points[None, :, :] - a[:, None, :]
+    length_sq = np.maximum(np.einsum("cx,cx->c", axis, axis), 1e-300)  # a sphere: an axis of length 0
+    s = np.clip(np.einsum("ckx,cx->ck", rel, axis) / length_sq[:, None], 0.0, 1.0)
+    gap = rel - s[..., None] * axis[:, None, :]
+    return np.einsum("ckx,ckx->ck", gap, gap) < np.square(caps.radius)[:, None]
+
+
+def capsules_holding(robot: Robot, qs: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Which link capsules hold at least one of ``points`` (k, 3; m, world) at some configuration of ``qs``
+    (n, nq; rad): (capsules,) bool (:func:`inside_capsules`)."""
+    held = np.zeros(link_capsules(robot).count, dtype=bool)
+    for q in qs:
+        held |= inside_capsules(robot, q, points).any(axis=1)
+    return held
+
+
 def joint_placements(robot: Robot, q: np.ndarray) -> list[pin.SE3]:
     """World poses of joints 1 … n's frames at ``q`` (rad): Pinocchio's ``oMi``."""
     pin.forwardKinematics(robot.model, robot.data, q)
@@ -85,6 +108,19 @@ def unit_circle(around: float) -> np.ndarray:
     points = arc(around - np.pi, around + np.pi, 1.0, around)
     assert points is not None  # both ends finite
     return points
+
+
+def framing_distance(points: np.ndarray, target: np.ndarray, direction: np.ndarray, fov: float) -> float:
+    """The distance (m) from ``target`` along ``direction`` (a vector toward the camera) of a camera looking at
+    ``target`` with world z up, from which every one of ``points`` (k, 3; m) is in view: within ``fov`` (rad)
+    both across and up (a square field; a landscape window's wider one keeps them in view too)."""
+    back = direction / np.linalg.norm(direction)
+    right = np.cross(np.array([0.0, 0.0, 1.0]), back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    rel = points - target
+    off_axis = np.maximum(np.abs(rel @ right), np.abs(rel @ up))
+    return float(np.max(rel @ back + off_axis / np.tan(0.5 * fov)))
 
 
 def polyline_segments(points: np.ndarray) -> np.ndarray:

@@ -3,8 +3,12 @@
 The scene (names are viser's scene-tree paths):
 
 * ``/arm/joint_k``: joint k's frame, moved to Pinocchio's ``oMi`` at each shown tick; the link capsules
-  (:func:`~qpnso.view.geometry.capsule_shapes`) are its children, the tool frame a child of its joint;
-* ``/paths/tool`` (red) and ``/paths/reference`` (black): the tool point's recorded path and its reference;
+  (:func:`~qpnso.view.geometry.capsule_shapes`) are its children, the tool frame a child of its joint; a
+  capsule that holds a point of the tool path or of its reference at some shown tick is see-through
+  (:data:`SEE_THROUGH_OPACITY`): with the tool point at the flange the hand's capsule holds nearly all of both;
+* ``/paths/reference`` (cyan) and ``/paths/tool`` (magenta, drawn after it): the tool point's reference and
+  its recorded path (:func:`path_points`), :data:`PATH_PX` wide on the screen whatever the zoom, in colours
+  that no other part has, even seen through a see-through capsule;
 * ``/elbow``: the elbow circle's frame (:func:`~qpnso.view.geometry.circle_frame`), with the circle (grey),
   ROM_t (blue) and the continuity interval (green) as arcs outside it (:data:`ROM_OFFSET_M`,
   :data:`INTERVAL_OFFSET_M`: clear of the arm's capsules), the spoke from the centre through the elbow at the
@@ -31,12 +35,15 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.errors import InputError, SingularityError
+from qpnso.model.collision import link_capsules
 from qpnso.model.obstacles import Box, Capsule, Obstacle, Sphere
 from qpnso.view.geometry import (
     arc,
     capsule_shapes,
+    capsules_holding,
     circle_frame,
     elbow_circle_at,
+    framing_distance,
     joint_placements,
     polyline_segments,
     unit_circle,
@@ -46,8 +53,8 @@ from qpnso.view.replay import Replay
 NO_VISER = "the 3-D view needs viser, which is not installed (pip install 'qpnso[view]')"
 
 ARM = (232, 120, 32)
-TOOL_PATH = (210, 30, 30)
-REFERENCE = (30, 30, 30)
+TOOL_PATH = (200, 0, 200)
+REFERENCE = (0, 170, 200)
 CIRCLE = (150, 150, 150)
 ROM = (30, 90, 225)
 INTERVAL = (40, 170, 60)
@@ -60,6 +67,15 @@ INTERVAL_OFFSET_M = 0.16
 """The continuity interval's arc, and the ball of the arm angle's spoke, this far (m) outside the circle."""
 PATH_POINTS_MAX = 4000
 """At most this many points of the tool's path and of its reference are drawn."""
+PATH_PX = 3.0
+"""Width of the tool's recorded path and of its reference on the screen (pixels, whatever the zoom)."""
+VIEW_DIRECTION = np.array([0.9, -0.9, 0.5])
+"""From where the page's camera looks at the scene (world frame; only its direction counts)."""
+FRAMING_MARGIN = 1.1
+"""The camera this much farther than the nearest distance at which everything drawn is in view."""
+SEE_THROUGH_OPACITY = 0.3
+"""Opacity of a link capsule that would hide the tool path or its reference (the paths drawn inside it show
+through, tinted by it); the other capsules are opaque."""
 
 
 def viser_module():
@@ -99,12 +115,17 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 
 class ReplayScene:
-    """The scene of ``replay`` on a viser ``server`` (module docstring); :meth:`show` moves it to a tick."""
+    """The scene of ``replay`` on a viser ``server`` (module docstring), showing the ticks ``frames`` (indices;
+    the capsules that hold part of the paths at one of them are see-through); :meth:`show` moves it to a
+    tick."""
 
-    def __init__(self, server, replay: Replay) -> None:
+    def __init__(self, server, replay: Replay, frames: np.ndarray) -> None:
         self.replay = replay
         self.scene = server.scene
         robot = replay.robot
+        self.frames = frames
+        self.paths = path_points(replay)
+        self.see_through = capsules_holding(robot, replay.q[frames], np.vstack(list(self.paths.values())))
         self.joints = [self.scene.add_frame(f"/arm/joint_{j}", show_axes=False) for j in range(1, robot.model.njoints)]
         self._add_arm()
         self._add_paths()
@@ -120,22 +141,25 @@ class ReplayScene:
         for k, shape in enumerate(capsule_shapes(robot)):
             parent = f"/arm/joint_{shape.joint}" if shape.joint > 0 else "/arm/base"
             vertices, faces = capsule_mesh(shape.a, shape.b, shape.radius)
-            self.scene.add_mesh_simple(f"{parent}/capsule_{k}", vertices, faces, color=ARM)
+            opacity = SEE_THROUGH_OPACITY if self.see_through[k] else None
+            self.scene.add_mesh_simple(f"{parent}/capsule_{k}", vertices, faces, color=ARM, opacity=opacity)
         tool = robot.model.frames[robot.tool_frame_id]
         self.scene.add_frame(
             f"/arm/joint_{tool.parentJoint}/tool",
             axes_length=0.08,
             axes_radius=0.004,
+            origin_radius=0.004,  # (viser's default, twice the axes' radius, hides the tool path's last 8 mm)
             position=tool.placement.translation,
             wxyz=wxyz(tool.placement.rotation),
         )
         self.scene.add_grid("/floor", width=2.0, height=2.0, cell_size=0.1)
 
     def _add_paths(self) -> None:
-        step = max(1, len(self.replay.t) // PATH_POINTS_MAX)
-        for name, points, colour in (("tool", self.replay.tool, TOOL_PATH), ("reference", self.replay.ref, REFERENCE)):
-            shown = np.vstack([points[::step], points[-1:]])
-            self.scene.add_line_segments(f"/paths/{name}", polyline_segments(shown), colour, thickness=0.003)
+        for name, colour in (("reference", REFERENCE), ("tool", TOOL_PATH)):
+            segments = polyline_segments(self.paths[name])
+            self.scene.add_line_segments(
+                f"/paths/{name}", segments, colour, thickness=PATH_PX, thickness_units="screen"
+            )
 
     def _add_obstacles(self) -> None:
         for k, obstacle in enumerate(self.replay.obstacles):
@@ -153,11 +177,32 @@ class ReplayScene:
         self.labels = {name: s.add_label(f"/elbow/label_{name}", name) for name in ("ROM_t", "interval")}
 
     def set_camera(self, server) -> None:
-        """Look at the middle of the tool's path from the front right, far enough to see base and tool."""
-        target = 0.5 * (self.replay.tool.mean(axis=0) + np.array([0.0, 0.0, 0.4]))
+        """Look along :data:`VIEW_DIRECTION` (from the front right, above) at the middle of what the shown ticks
+        draw (:meth:`drawn_points`), :data:`FRAMING_MARGIN` times as far as keeps it all in viser's field of
+        view."""
+        points = self.drawn_points()
+        target = 0.5 * (points.min(axis=0) + points.max(axis=0))
+        distance = FRAMING_MARGIN * framing_distance(points, target, VIEW_DIRECTION, server.initial_camera.fov)
         server.initial_camera.look_at = tuple(target)
-        server.initial_camera.position = tuple(target + np.array([0.9, -0.9, 0.5]))
+        server.initial_camera.position = tuple(target + distance * VIEW_DIRECTION / np.linalg.norm(VIEW_DIRECTION))
         server.initial_camera.up = (0.0, 0.0, 1.0)
+
+    def drawn_points(self) -> np.ndarray:
+        """Points (k, 3; m, world) around what the shown ticks draw: the ends of the arm's capsules pushed out by
+        their radii along the world axes, the paths, and each elbow circle at the radius of the interval's arc."""
+        robot, caps = self.replay.robot, link_capsules(self.replay.robot)
+        reach = max(caps.radius) * np.vstack([np.eye(3), -np.eye(3)])
+        ring = unit_circle(0.0)[:: max(1, len(unit_circle(0.0)) // 24)]
+        points = [*self.paths.values()]
+        for k in self.frames:
+            points.append((caps.points(robot, self.replay.q[k])[:, None, :] + reach[None]).reshape(-1, 3))
+            try:
+                circle = elbow_circle_at(robot, self.replay.q[k])
+            except SingularityError:
+                continue
+            frame = circle_frame(circle)
+            points.append(frame.translation + (circle.radius + INTERVAL_OFFSET_M) * ring @ frame.rotation.T)
+        return np.vstack(points)
 
     # ------------------------------------------------------------------ motion
     def show(self, k: int) -> None:
@@ -196,6 +241,13 @@ class ReplayScene:
         self.marker.position = tip
 
 
+def path_points(replay: Replay) -> dict[str, np.ndarray]:
+    """The drawn points (k, 3; m, world) of the reference and of the tool's recorded path: every tick's, or
+    evenly spaced ticks when there are more than :data:`PATH_POINTS_MAX`, the last tick included."""
+    step = max(1, len(replay.t) // PATH_POINTS_MAX)
+    return {name: np.vstack([p[::step], p[-1:]]) for name, p in (("reference", replay.ref), ("tool", replay.tool))}
+
+
 def add_obstacle(scene, name: str, obstacle: Obstacle) -> None:
     """A keep-out volume (world frame, m) as a translucent solid."""
     if isinstance(obstacle, Box):
@@ -225,7 +277,7 @@ def html_page(replay: Replay, fps: float = 20.0) -> str:
     with contextlib.redirect_stdout(io.StringIO()):  # viser prints its server's addresses: none here
         server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
-        view = ReplayScene(server, replay)
+        view = ReplayScene(server, replay, frames)
         view.show(int(frames[0]))
         recording = server.get_scene_serializer()
         view.set_camera(server)
@@ -267,7 +319,7 @@ def serve(replay: Replay, host: str = "127.0.0.1", port: int = 8080, fps: float 
     viser = viser_module()
     server = viser.ViserServer(host=host, port=port, verbose=False)
     try:
-        view = ReplayScene(server, replay)
+        view = ReplayScene(server, replay, replay.frames(fps))
         view.set_camera(server)
         player = Player(server, view, fps)
     except BaseException:
@@ -326,7 +378,8 @@ class Player:
 
 
 LEGEND = (
-    "arm: link capsules (orange); tool path: recorded (red), reference (black); elbow circle (grey) with "
+    "arm: link capsules (orange; see-through where they would hide the tool path); tool path: recorded "
+    "(magenta), reference (cyan); elbow circle (grey) with "
     "ROM_t (blue, 10 cm outside) and the continuity interval (green, 16 cm outside); the arm angle: spoke "
     "through the elbow and ball (black); "
     "keep-out volumes (translucent red)."

@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import tomllib
 import types
 import typing
 from collections.abc import Mapping
@@ -40,11 +41,6 @@ import numpy as np
 from qpnso.errors import ConfigError
 
 __all__ = ["SettingError", "check", "check_table", "from_dict", "out_of_range", "read_toml", "show"]
-
-try:  # Python 3.11+
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
 
 
 class SettingError(ConfigError):

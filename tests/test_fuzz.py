@@ -576,6 +576,7 @@ def test_a_kernel_compiled_in_a_tick_is_reproduced_only_by_fresh_processes(monke
     for report in (here, fresh):
         compiled = report.first["compile"]
         assert report.counts["compile"] == 1 and compiled.detail == f"added {added[0]}"
+        assert report.kernels_added == {added[0]: 1} and f"(1×, at most once a process): {added[0]}" in report.table()
         assert (
             report.worst["tick_cpu"].where.tick == compiled.where.tick and added[0] in report.worst["tick_cpu"].detail
         )

@@ -174,6 +174,7 @@ class TickChecker:
         one count each (nothing may compile after the constructor)."""
         for signature in added:
             self.report.record("compile", 1.0, where, inputs, f"added {signature}")
+            self.report.kernels_added[signature] = self.report.kernels_added.get(signature, 0) + 1
 
     # -------------------------------------------------- command to command
     def motion(self, history: CommandHistory, dq: np.ndarray, cmd: Command, where: Where, inputs: dict) -> None:

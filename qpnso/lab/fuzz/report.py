@@ -151,6 +151,9 @@ class FuzzReport:
     recovery_unreachable: int = 0  # over the limit but the reference was not reachable (not counted)
     recovery_elbow_undefined: int = 0  # over the limit, elbow dropped, the arm angle undefined at the held pose
     drift_checked: int = 0  # held ticks checked for drift (settled, not excused)
+    kernels_added: dict[str, int] = field(
+        default_factory=dict
+    )  # signature → step calls that added it (check "compile")
     accel_checked: int = 0  # commands compared with the controller's previous one and its ddq_max·dt
     accel_unbounded: int = 0  # commands after another whose controller has no ddq_max (not checked)
     deadline_ticks: int = 0  # valid ticks whose cascade ran out of solver_time_budget (Status.QP_DEADLINE)
@@ -292,6 +295,10 @@ class FuzzReport:
             ex = self.worst.get(check.key)
             worst = f"{ex.value:.4g} {check.unit}: {ex.where.short()}{_detail(ex)}" if ex else "—"
             lines.append(f"| {self._text(check)} | {self._count_cell(check)} | {worst.replace('|', '/')} |")
+        lines += [
+            f"added after the constructor ({n}×, at most once a process): {signature}"
+            for signature, n in sorted(self.kernels_added.items())
+        ]
         lines += self._time_tables() + self._worst_tick_lines()
         pct = self.percentiles()
         r = pct.get("recovery_ticks")
@@ -409,6 +416,7 @@ class FuzzReport:
                 "recovery_unreachable": self.recovery_unreachable,
                 "recovery_elbow_undefined": self.recovery_elbow_undefined,
                 "drift_checked": self.drift_checked,
+                "kernels_added": self.kernels_added,
                 "accel_checked": self.accel_checked,
                 "accel_unbounded": self.accel_unbounded,
                 "deadline_ticks": self.deadline_ticks,

@@ -641,3 +641,21 @@ def test_the_default_mix_runs_every_robot_dt_and_strategy_in_fresh_processes() -
     assert all(ex.where.robot in robots and ex.where.dt in (1e-3, 4e-3) for ex in report.worst.values())
     assert ("SKIPPED robot panda: " in report.table()) == (not HAS_PANDA)
     json.dumps(report.to_dict())
+
+
+def test_a_panda_without_example_robot_data_is_skipped_and_said_so(monkeypatch, capsys) -> None:
+    """Without example-robot-data (made so here) the Panda is left out of the run with a line saying why; asked
+    for alone it is refused by name (the command line: one line, exit 2)."""
+    from qpnso.cli import main
+
+    monkeypatch.setattr(qpnso.model.robot, "_panda_urdf", lambda: None)
+    report = run_fuzz(
+        FuzzConfig(ticks=20, episode_ticks=20, strategies=("qp",), robots=("lwr4p", "panda"), dts=(1e-3,))
+    )
+    assert report.config.robots == ("lwr4p",) and set(report.by_setting) == {"lwr4p, dt 1 ms"}
+    assert "example-robot-data" in report.skipped_robots["panda"]
+    assert "SKIPPED robot panda: robot 'panda' needs the optional package example-robot-data" in report.table()
+    with pytest.raises(qpnso.RobotNotFoundError, match="no robot to fuzz"):
+        run_fuzz(FuzzConfig(ticks=20, robots=("panda",)))
+    assert main(["bench", "fuzz", "-n", "20", "--robot", "panda", "--workers", "0"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1

@@ -106,7 +106,8 @@ class Fuzzer:
         t0 = time.perf_counter()
         deadline = math.inf if cfg.max_seconds is None else t0 + cfg.max_seconds
         report = self.run_episodes(cfg.first_episode, 1, cfg.ticks, progress, deadline)
-        replay_slow(report, lambda episodes: {e: [self.replay_here(e) for _ in range(cfg.replays)] for e in episodes})
+        with self.realtime([]):  # (the controllers are built: the collector frozen again for the replays)
+            replay_slow(report, lambda eps: {e: [self.replay_here(e) for _ in range(cfg.replays)] for e in eps})
         report.wall_seconds = time.perf_counter() - t0
         return report
 

@@ -10,7 +10,7 @@ import pytest
 
 from qpnso.elbow.intervals import Interval
 from qpnso.elbow.rom import ClippedRom, ElbowConfig, clip_rom, rom_bounds, setpoint, sigmoid_stiffness, stiffness
-from qpnso.errors import ConfigError, InputError
+from qpnso.errors import ConfigError, InputError, QpnsoError
 
 D = math.radians
 
@@ -143,3 +143,86 @@ def test_clip_rom_refuses_a_negative_half_width(half_width: float) -> None:
     """A ROM of negative half width (rad) is refused by name, however small the excess."""
     with pytest.raises(InputError, match="half_width must be >= 0"):
         clip_rom(0.5, half_width, Interval(-1.0, 1.0, False), 0.1)
+
+
+# ------------------------------------------------- the rom strategy's set-point (issue 31, item 5)
+def _numpy_joints(motion, ns: np.ndarray) -> np.ndarray:
+    """``SelfMotion.joints`` as NumPy computed it before the kernel (``basis @ num.T``, ``arctan2``/``arccos``):
+    the reference the kernel must reproduce to round-off."""
+    from qpnso.elbow.closed_form import TAN
+
+    basis = np.column_stack([np.sin(ns), np.cos(ns), np.ones_like(ns)])
+    n, d = basis @ motion.num.T, basis @ motion.den.T
+    q = np.where(motion.kind == TAN, np.arctan2(n, d), np.arccos(np.clip(d, -1.0, 1.0))) * motion.sign
+    q[:, 3] = motion.q4
+    return q
+
+
+@pytest.mark.parametrize("name", ["lwr4p", "iiwa14"])
+def test_the_closed_form_ik_kernel_reproduces_the_numpy_formula_and_the_pose(name: str, rng) -> None:
+    """``ik`` (now the kernel :func:`~qpnso.elbow.closed_form.joints_along`) equals the NumPy formula it replaced to
+    1e-12 rad over 40 random configurations × 25 arm angles, and every answer puts the tool back on the pose
+    (Pinocchio FK) with the asked arm angle (the independent arm angle of [E 2]–[E 4])."""
+    from conftest import reference_arm_angle
+
+    from qpnso.elbow.srs import branch, ik, self_motion
+    from qpnso.model.robot import load_robot
+
+    robot = load_robot(name)
+    ns = np.linspace(-math.pi, math.pi, 25, endpoint=False)
+    checked = 0
+    for _ in range(40):
+        q = robot.random_q(rng, margin=0.1)
+        pose, b = robot.tool_pose(q), branch(robot, q)
+        try:
+            joints = ik(robot, pose, ns, b)
+        except QpnsoError:
+            continue  # (an undefined arm angle at this pose)
+        np.testing.assert_allclose(joints, _numpy_joints(self_motion(robot, pose, b), ns), rtol=0, atol=1e-12)
+        for k in range(0, ns.size, 6):
+            err = (robot.tool_pose(joints[k]).inverse() * pose).homogeneous - np.eye(4)
+            assert np.abs(err).max() < 1e-9
+            assert abs(math.remainder(reference_arm_angle(robot, joints[k]) - ns[k], 2 * math.pi)) < 1e-9
+        checked += 1
+    assert checked >= 30
+
+
+@pytest.mark.parametrize("name", ["lwr4p", "iiwa14"])
+def test_the_rom_set_point_is_the_librarys_ik_at_the_saturated_arm_angle(name: str) -> None:
+    """Outside ROM_t the ``rom`` strategy's step ``q_des − q`` is ``qpnso.elbow.srs.ik`` at the saturated arm angle
+    (the tool's pose, the branch of q) minus q, to round-off, and its set-point is computed once per tick: the
+    level-2 target and the torque of one tick ask for it once (they asked twice, 0.2 ms each in Python)."""
+    import pinocchio as pin
+
+    from qpnso.control.config import ControllerConfig
+    from qpnso.control.controller import Controller
+    from qpnso.control.strategies import RomModulation
+    from qpnso.elbow.srs import branch, ik
+    from qpnso.model.robot import load_robot
+
+    robot = load_robot(name)
+    ctrl = Controller(robot, ControllerConfig(strategy="rom"))
+    q = robot.sample_configuration()
+    ctrl.reset(q, ns0=ctrl.evaluate(q).arm_angle + 1.5)  # the elbow 1.5 rad from the ROM's centre: outside ROM_t
+    calls = []
+    ik_step = RomModulation._ik_step
+
+    def counted(self, state, elbow, target):
+        calls.append(target)
+        return ik_step(self, state, elbow, target)
+
+    RomModulation._ik_step = counted  # type: ignore[method-assign]
+    try:
+        for _ in range(5):
+            cmd = ctrl.step(q)
+            q = q + ctrl.config.dt * cmd.dq
+    finally:
+        RomModulation._ik_step = ik_step  # type: ignore[method-assign]
+    assert len(calls) == 5
+    state, elbow = ctrl.evaluate(q), ctrl.records.elbow()  # (the last tick's arm angle and ROM_t)
+    target = min(max(elbow.ns, elbow.rom[0]), elbow.rom[1])
+    assert target != elbow.ns
+    step = ctrl.strategy._setpoint_step(state, elbow)
+    wrapped = (target + math.pi) % (2 * math.pi) - math.pi
+    expected = ik(robot, pin.SE3(state.tool_rotation.copy(), state.tool_position.copy()), wrapped, branch(robot, q)) - q
+    np.testing.assert_allclose(step, expected, rtol=0, atol=1e-12)

@@ -17,13 +17,16 @@ differ only where the papers differ.
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from qpnso.control.state import TickState
 from qpnso.control.tick import low_pass, qp_level2
-from qpnso.errors import ConfigError, QpnsoError
+from qpnso.elbow.closed_form import SRS_OK, branch_signs, srs_ik
+from qpnso.elbow.srs import is_srs, srs_geometry
+from qpnso.errors import ConfigError
 from qpnso.qp import Level
 from qpnso.qp.problem import set_level2
 
@@ -183,34 +186,44 @@ class RomModulation(Strategy):
     """The elbow paper's set-point modulation (NSO) [E 1], [E 5], [E 6], [E 10], [E 11].
 
     ``ns_des`` follows ``ns`` inside ROM_t and saturates at its ends; the
-    set-point ``q_des`` is the closed-form IK at ``ns_des`` (S-R-S arms) or the
-    first-order step towards it; ``τ = K(ns)(q_des − q) − D q̇``.  Inside the ROM
-    the null space is only damped, as in the paper.
+    set-point ``q_des`` is the closed-form IK at ``ns_des`` (S-R-S arms: the kernel
+    :func:`qpnso.elbow.closed_form.srs_ik` on the branch of ``q``) or, where it has none (another arm, a
+    singular or unreachable pose), the first-order step towards it; ``τ = K(ns)(q_des − q) − D q̇``.
+    Inside the ROM the null space is only damped, as in the paper.  A tick's set-point is computed once
+    (:meth:`fill` asks :meth:`level2` and :meth:`nullspace_torque` with the same state).
     """
 
     name = "rom"
+
+    def __init__(self, controller: "Controller") -> None:
+        super().__init__(controller)
+        robot = controller.robot
+        self._geometry = srs_geometry(robot).record[0] if is_srs(robot) else None  # (None: no closed form)
+        self._q_set = np.zeros(robot.nq)  # rad: the closed-form set-point, written by the kernel
+        self._step_of: tuple[TickState, tuple[float, float, float], np.ndarray | None] | None = None  # (state,
+        # (ns, ROM_t), the set-point step there)
 
     def stiffness(self, elbow_stiffness: float) -> float:
         return elbow_stiffness
 
     def _setpoint_step(self, state: "TickState", elbow: "ElbowState") -> np.ndarray | None:
+        """``q_des − q`` (rad) at the saturated arm angle, or None inside ROM_t; computed once per state and
+        elbow (arm angle, ROM_t)."""
         lo, hi = elbow.rom
+        key = (elbow.ns, lo, hi)
+        if self._step_of is not None and self._step_of[0] is state and self._step_of[1] == key:
+            return self._step_of[2]
         target = min(max(elbow.ns, lo), hi)
-        if target == elbow.ns:
-            return None
-        return self._ik_step(state, elbow, target)
+        step = None if target == elbow.ns else self._ik_step(state, elbow, target)
+        self._step_of = (state, key, step)
+        return step
 
-    def _ik_step(self, state, elbow, target: float) -> np.ndarray:
-        import pinocchio as pin
-
-        from qpnso.elbow.srs import branch, ik
-
-        try:
-            pose = pin.SE3(state.tool_rotation, state.tool_position)
-            wrapped = float((target + np.pi) % (2 * np.pi) - np.pi)
-            return ik(self.ctrl.robot, pose, wrapped, branch(self.ctrl.robot, state.q)) - state.q
-        except QpnsoError:
-            return arm_angle_step(state, target - elbow.ns)
+    def _ik_step(self, state: "TickState", elbow: "ElbowState", target: float) -> np.ndarray:
+        """``q_des − q`` (rad) towards the arm angle ``target`` (rad): the closed-form IK's set-point on the branch
+        of ``q`` at the tool's pose (:func:`setpoint_ik`), else :func:`arm_angle_step`."""
+        if self._geometry is not None and setpoint_ik(self._geometry, state, target, self._q_set):
+            return self._q_set - state.q
+        return arm_angle_step(state, target - elbow.ns)
 
     def level2(self, state, elbow) -> Level | None:
         """Towards the set-point while ``ns`` is outside ROM_t; inside, nothing once the low-passed target
@@ -228,6 +241,19 @@ class RomModulation(Strategy):
         step = self._setpoint_step(state, elbow)
         spring = 0.0 if step is None else elbow.stiffness * step
         return spring - self.cfg.joint_damping * dq_meas
+
+
+def setpoint_ik(geometry: np.void, state: "TickState", ns: float, out: np.ndarray) -> bool:
+    """The closed-form IK (:func:`qpnso.elbow.closed_form.srs_ik`, the S-R-S geometry record ``geometry``) at the
+    tool pose of ``state``, on the branch of its ``q``, at the arm angle ``ns`` (rad, wrapped into [−π, π)) into
+    ``out`` (7,); False where it has none (a joint 2, 4 or 6 exactly 0, ``ns`` not finite, the pose out of reach
+    or its arm angle undefined): what :func:`qpnso.elbow.srs.ik` raises there."""
+    s2, s4, s6, defined = branch_signs(state.q)
+    if not (defined and math.isfinite(ns)):
+        return False
+    wrapped = (ns + math.pi) % (2.0 * math.pi) - math.pi
+    code, _ = srs_ik(geometry, state.tool_rotation, state.tool_position, s2, s4, s6, wrapped, out)
+    return bool(code == SRS_OK)
 
 
 class QPStrategy(Strategy):

@@ -278,6 +278,42 @@ def srs_interval(G, R, p, s2, s4, s6, ns, q_min, q_max):
 
 
 @njit(cache=True)
+def joints_at(num, den, sign, q4, ns, out):
+    """The joints (rad) at the arm angle ``ns`` (rad) of the self-motion rows of :func:`self_motion_rows` into
+    ``out`` (7,) (module docstring): with ``x = (sin ns, cos ns, 1)``, tangent type ``sign·atan2(num·x, den·x)``,
+    cosine type ``sign·acos(den·x)`` (``den·x`` clipped to [−1, 1]), joint 4 the constant ``q4``."""
+    s, c = math.sin(ns), math.cos(ns)
+    for k in range(7):
+        d = den[k, 0] * s + den[k, 1] * c + den[k, 2]
+        if KIND[k] == TAN:
+            out[k] = sign[k] * math.atan2(num[k, 0] * s + num[k, 1] * c + num[k, 2], d)
+        elif KIND[k] == COS:
+            out[k] = sign[k] * math.acos(min(1.0, max(-1.0, d)))
+        else:
+            out[k] = q4
+
+
+@njit(cache=True)
+def joints_along(num, den, sign, q4, ns, out):
+    """:func:`joints_at` for every arm angle of ``ns`` (N,) into the rows of ``out`` (N, 7)."""
+    for i in range(ns.shape[0]):
+        joints_at(num, den, sign, q4, ns[i], out[i])
+
+
+@njit(cache=True)
+def srs_ik(G, R, p, s2, s4, s6, ns, out):
+    """Closed-form IK of the S-R-S arm ``G`` (docs/method.md §4): the joints (rad) at the tool pose ``R``
+    (world ← tool), ``p`` (m, world), on the branch ``s2, s4, s6`` (±1), at the arm angle ``ns`` (rad) into
+    ``out`` (7,) (:func:`self_motion_rows`, then :func:`joints_at`; joint limits not checked).  Returns ``(code,
+    dist)`` of :func:`self_motion_rows`; ``out`` is written only when the code is :data:`SRS_OK`."""
+    num, den, sign = np.empty((7, 3)), np.empty((7, 3)), np.empty(7)
+    code, q4, dist = self_motion_rows(G, R, p, s2, s4, s6, num, den, sign)
+    if code == SRS_OK:
+        joints_at(num, den, sign, q4, ns, out)
+    return code, dist
+
+
+@njit(cache=True)
 def branch_signs(q):
     """The branch of ``q`` (rad): signs (±1.0) of joints 2, 4, 6, and False if one of them is exactly 0."""
     s2, s4, s6 = (1.0 if q[1] > 0 else -1.0), (1.0 if q[3] > 0 else -1.0), (1.0 if q[5] > 0 else -1.0)

@@ -35,7 +35,7 @@ from qpnso.elbow.closed_form import (
     SRS_ELBOW_STRAIGHT,
     SRS_UNREACHABLE,
     SRS_WRIST_VERTICAL,
-    TAN,
+    joints_along,
     self_motion_rows,
     srs_dtype,
 )
@@ -277,11 +277,9 @@ class SelfMotion:
         arr = np.asarray(ns, dtype=float)
         if not np.all(np.isfinite(arr)):
             raise InputError("arm angle ns contains NaN or inf")
-        flat = arr.reshape(-1)
-        basis = np.column_stack([np.sin(flat), np.cos(flat), np.ones_like(flat)])
-        n, d = basis @ self.num.T, basis @ self.den.T
-        q = np.where(self.kind == TAN, np.arctan2(n, d), np.arccos(np.clip(d, -1.0, 1.0))) * self.sign
-        q[:, 3] = self.q4
+        flat = np.ascontiguousarray(arr.reshape(-1))
+        q = np.empty((flat.size, 7))
+        joints_along(self.num, self.den, self.sign, float(self.q4), flat, q)  # (the kernel the rom tick runs too)
         return q[0] if arr.ndim == 0 else q
 
 

@@ -170,29 +170,29 @@ def test_panda_numerical_interval_ends_are_limit_crossings() -> None:
 
 def test_a_walk_in_pieces_takes_the_pieces_it_is_given_and_ends_where_a_whole_one_does(monkeypatch) -> None:
     """``NumericalWalk.advance(k)`` does at most k pieces of work a call — each at most one tool Jacobian (a Newton
-    iteration of a pose correction or of a limit crossing's exact solve, or a step's SVD), counted by wrapping
-    ``robot.jacobian`` — and, whatever the pieces, ends with the interval of ``numerical_interval``, ends and
-    causes equal."""
+    iteration of a pose correction or of a limit crossing's exact solve, or a step's null direction), counted by
+    wrapping Pinocchio's ``computeFrameJacobian`` — and, whatever the pieces, ends with the interval of
+    ``numerical_interval``, ends and causes equal."""
     robot = _panda()
     rng = np.random.default_rng(4)
     jacobians = []
-    jacobian = robot.jacobian
+    jacobian = pin.computeFrameJacobian
 
-    def counted(q):
+    def counted(*args):
         jacobians.append(1)
-        return jacobian(q)
+        return jacobian(*args)
 
     for q, pieces in zip(_regular_qs(robot, rng, 3, margin=0.1), (1, 2, 7)):
         whole = I.numerical_interval(robot, q)
         walk = I.NumericalWalk(robot, q)
-        monkeypatch.setattr(robot, "jacobian", counted)
+        monkeypatch.setattr(pin, "computeFrameJacobian", counted)
         result, calls = None, 0
         while result is None:
             before = len(jacobians)
             result = walk.advance(pieces)
             assert len(jacobians) - before <= pieces
             calls += 1
-        monkeypatch.setattr(robot, "jacobian", jacobian)
+        monkeypatch.setattr(pin, "computeFrameJacobian", jacobian)
         assert walk.steps > 10 and calls == -(-walk.steps // pieces)  # every call but the last took all it was given
         assert len(jacobians) > walk.steps / 2  # (the count sees the walk's work: not vacuous)
         jacobians.clear()
@@ -334,3 +334,42 @@ def test_a_joint_out_of_its_limits_at_every_arm_angle_empties_its_arcs(side: str
     assert per[3] == [] and psi == []
     joints = S.ik(robot, pose, np.linspace(-math.pi, math.pi, 73), b)
     assert np.allclose(joints[:, 3], q[3], atol=1e-9)  # the sampled self-motion: q4 never moves
+
+
+@pytest.mark.parametrize(("inside", "beyond", "limit"), [(0.2, 1.2, 1.0), (-0.2, -1.2, -1.0), (1.0, 1.5, 1.0)])
+def test_the_limit_fraction_is_where_the_chord_meets_the_limit(inside: float, beyond: float, limit: float) -> None:
+    """From a point inside its limit (or on it), the fraction is where ``inside + t·(beyond − inside)`` equals the
+    limit, found here by bisection."""
+    lo, hi = 0.0, 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        past = (inside + mid * (beyond - inside) - limit) * (beyond - limit) > 0
+        lo, hi = (lo, mid) if past else (mid, hi)
+    assert I._limit_fraction(inside, beyond, limit) == pytest.approx(0.5 * (lo + hi), abs=1e-12)
+
+
+def test_a_crossing_from_a_start_past_its_limit_is_at_the_start_without_warnings(robot: Robot, rng) -> None:
+    """A walk may start up to ``check_q``'s 1e-9 rad past a limit (a controller's measured q).  A step that leaves
+    that joint where it was has it past the limit at both ends of the chord: its fraction is 0 (the walk is at the
+    limit already), not a division by its zero motion (a divide-by-zero RuntimeWarning in ``_crossing``, issue 31)
+    nor a negative fraction.  Run with warnings as errors; the answer keeps the start's tool pose with that joint
+    on its limit and names it."""
+    import warnings
+
+    q_in = _regular_qs(robot, rng, 1, margin=0.2)[0]
+    q_in[2] = robot.q_max[2] + 5e-10  # (accepted by check_q: within its 1e-9 rad)
+    robot.check_q(q_in)
+    target = robot.tool_pose(q_in)
+    q_out = q_in.copy()
+    q_out[0] = robot.q_max[0] + 0.01  # another joint past its limit; joint 2 unmoved, past at both ends
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        walk = I._crossing(robot, q_in, q_out, target, 1e-12)
+        try:
+            while True:
+                next(walk)
+        except StopIteration as done:
+            q, cause = done.value
+    assert cause == I.Cause("limit", 2, "max") and q[2] == robot.q_max[2]
+    err = (robot.tool_pose(q).inverse() * target).homogeneous - np.eye(4)
+    assert np.abs(err).max() < 1e-9

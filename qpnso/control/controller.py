@@ -61,11 +61,12 @@ from qpnso.control.tick import (
     tick_dtype,
 )
 from qpnso.elbow.clearance import OBSTACLE_ROOM, set_obstacles, still_obstacles
-from qpnso.elbow.intervals import NumericalWalk
+from qpnso.elbow.intervals import NumericalWalk, closed_form_applies
+from qpnso.elbow.srs import pose_arrays
 from qpnso.errors import ConfigError, InputError, QpnsoError
 from qpnso.model.collision import has_capsules, link_capsules
 from qpnso.model.costs import CostModel
-from qpnso.model.obstacles import Obstacle, as_obstacles, checked_velocities, placement_velocity
+from qpnso.model.obstacles import Obstacle, Sphere, as_obstacles, checked_velocities, placement_velocity
 from qpnso.model.robot import Robot, as_vector, checked_pose, finite_scalar, tick_vector
 from qpnso.qp import HierarchicalQP
 from qpnso.qp.problem import STOPPED, new_problem
@@ -181,7 +182,13 @@ class Controller:
         """Dry ticks at the robot's sample configuration, then forgotten: the Numba kernels of
         :mod:`qpnso.linalg`, :mod:`qpnso.qp` and :mod:`qpnso.control.tick` compile (seconds, once per machine,
         then cached on disk) or load here, never in a control tick — on the line fast path, the general
-        cascade (:meth:`HierarchicalQP.warm_up`) and with the elbow dropped."""
+        cascade (:meth:`HierarchicalQP.warm_up`), with the elbow dropped and with the elbow outside its ROM (the
+        ``rom`` strategy's closed-form set-point).  An arm whose tick may walk its continuity interval
+        numerically (no closed form, or links that do not turn rigidly with the arm angle once obstacles are
+        set) also walks here as a tick does (:meth:`_update_interval`): a walk to its end stored, with the
+        controller's obstacles or one far away, and a walk that fails.  (A kernel given another argument type —
+        Pinocchio's Fortran-ordered rotation once reached ``store_interval`` only when a tick's walk finished —
+        compiles a new signature: 15–22 ms of CPU in a new process, about 1 s on a cold cache, inside a tick.)"""
         self.qp.warm_up(line=False, problem=self.records.problem)  # the general cascade's kernels (the dry ticks
         # below may not reach it)
         q = self.robot.sample_configuration()
@@ -195,6 +202,18 @@ class Controller:
             self.step(q)
         finally:
             limits["wrist_sin_min"] = wrist_sin_min
+        self.reset(q, ns0=float(self.records.memory[0]["ns"]) + math.pi)  # the ROM opposite the elbow
+        self.step(q)
+        geo = self.records.params["geo"][0] if self.capsules is not None else None
+        if not closed_form_applies(self.robot) or (geo is not None and geo["arcs"] == 0.0):
+            placed = self.obstacles
+            if geo is not None and not placed:  # one 1 km away: the walk's clearance kernels load before the first
+                self.obstacles = (Sphere(center=(1e3, 1e3, 1e3), radius=0.1),)  # set_obstacles
+            try:
+                self._update_interval(q, self.records.state, math.inf)  # a walk to its end, stored
+            finally:
+                self.obstacles = placed
+            self._update_interval(self.robot.q_max + 1.0, self.records.state)  # a walk that cannot start
         self._stop(q, self.robot.gravity(q), 0, time.perf_counter(), "warm-up")  # the stop command's kernel
         self.reset(q)
         self._reset_done = False
@@ -491,31 +510,35 @@ class Controller:
         except Exception:
             return np.zeros(self.robot.nq)
 
-    def _update_interval(self, q: np.ndarray, state: np.ndarray) -> None:
+    def _update_interval(self, q: np.ndarray, state: np.ndarray, steps: float | None = None) -> None:
         """Renew the continuity interval [E 9] of an arm without its closed form (the tick renews a closed-form one
         itself): the numerical walk (:class:`qpnso.elbow.intervals.NumericalWalk`) started at ``q`` when none is
-        under way, advanced by ``interval_steps_per_tick`` steps, stored with the tool pose it started at once it
-        is done — until then the last interval stands (the memory asks again next tick).  When it cannot be
-        computed, the last one (or, before any, the full circle) stands, marked stale
+        under way, advanced by ``steps`` pieces (None: ``interval_steps_per_tick``), stored with the tool pose it
+        started at once it is done — until then the last interval stands (the memory asks again next tick).  When
+        it cannot be computed, the last one (or, before any, the full circle) stands, marked stale
         (:func:`qpnso.control.memory.interval_failed`)."""
         m = self.records.memory[0]
         try:
             walk = self._walk = self._walk or self._new_walk(q)
-            interval = walk.advance(self.config.interval_steps_per_tick)
+            interval = walk.advance(self.config.interval_steps_per_tick if steps is None else steps)
         except QpnsoError:
             self._walk = None
             interval_failed(m)
             return
         if interval is not None:
             self._walk = None
-            T = walk.target  # (the tool pose the walk started at, Pinocchio's)
-            store_interval(m, interval.lo, interval.hi, interval.full_circle, T.rotation, T.translation)
+            R, p = pose_arrays(walk.target)  # (the tool pose the walk started at: Pinocchio's rotation is
+            # Fortran-ordered, another argument type for the kernel)
+            store_interval(m, interval.lo, interval.hi, interval.full_circle, R, p)
 
     def _new_walk(self, q: np.ndarray) -> NumericalWalk:
         """The numerical walk from ``q`` (an arm without the closed form), ended at the obstacles too — unless a
-        link is within the margin at ``q`` already (the rows move it out; the closed form's tick does the same)."""
+        link is within the margin at ``q`` already (the rows move it out; the closed form's tick does the same).
+        Its keep-out record has the controller's room, whatever the number of obstacles (one record type)."""
         try:
-            return NumericalWalk(self.robot, q, obstacles=self.obstacles, margin=self.config.obstacle_margin)
+            return NumericalWalk(
+                self.robot, q, obstacles=self.obstacles, margin=self.config.obstacle_margin, room=self._obstacle_room
+            )
         except InputError:
             return NumericalWalk(self.robot, q)
 

@@ -90,6 +90,7 @@ from qpnso.elbow.srs import (
     srs_geometry,
 )
 from qpnso.errors import InputError, ModelError, SingularityError
+from qpnso.linalg import least_norm_line
 from qpnso.model.collision import LinkCapsules, link_capsules
 from qpnso.model.obstacles import Obstacle, as_obstacles
 from qpnso.model.robot import Robot
@@ -242,13 +243,16 @@ def _keep_out_template(robot: Robot, room: int) -> np.ndarray:
     return keep_out_record(robot, link_capsules(robot), room)
 
 
-def _keep_out(robot: Robot, obstacles: Sequence[Obstacle], margin: float) -> tuple[np.ndarray, LinkCapsules]:
+def _keep_out(
+    robot: Robot, obstacles: Sequence[Obstacle], margin: float, room: int = 0
+) -> tuple[np.ndarray, LinkCapsules]:
     """A keep-out record holding ``obstacles`` (:func:`qpnso.elbow.clearance.set_obstacles`) and the margin d_s
-    (m, finite, ≥ 0), with the link capsules it was built for."""
+    (m, finite, ≥ 0), with the link capsules it was built for; room for ``max(room, OBSTACLE_ROOM, len(obstacles))``
+    obstacles (the room is part of the record's type: a caller whose number of obstacles changes gives its own)."""
     if not (math.isfinite(margin) and margin >= 0.0):
         raise InputError(f"the obstacle margin must be a finite number >= 0 m, got {margin!r}")
     obs = as_obstacles(obstacles)
-    rec = _keep_out_template(robot, max(OBSTACLE_ROOM, len(obs))).copy()
+    rec = _keep_out_template(robot, max(room, OBSTACLE_ROOM, len(obs))).copy()
     set_obstacles(rec, obs)
     rec[0]["margin"] = margin
     return rec, link_capsules(robot)
@@ -456,36 +460,76 @@ class NumericalOptions:
 
 
 def _pose_error(robot: Robot, q: np.ndarray, target: pin.SE3) -> np.ndarray:
-    """6-vector (world, linear first) that moves the tool from ``q``'s pose to ``target``."""
-    cur = robot.tool_pose(q)
+    """6-vector (world, linear first) that moves the tool from ``q``'s pose to ``target``; ``q`` (rad) already
+    checked (a walk's own configurations: Pinocchio directly, without ``Robot.tool_pose``'s checks and copy)."""
+    pin.framesForwardKinematics(robot.model, robot.data, q)
+    cur = robot.data.oMf[robot.tool_frame_id]
     return np.concatenate([target.translation - cur.translation, pin.log3(target.rotation @ cur.rotation.T)])
+
+
+def _tool_jacobian(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """``Robot.jacobian`` for a checked ``q`` (rad): 6×nq, world-aligned at the tool point, linear rows first,
+    C-ordered (the argument type of :func:`qpnso.linalg.least_norm_line` everywhere)."""
+    jac = pin.computeFrameJacobian(robot.model, robot.data, q, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED)
+    return np.ascontiguousarray(jac)
 
 
 def _newton(
     robot: Robot, q: np.ndarray, target: pin.SE3, tol: float, free: np.ndarray | None = None
 ) -> Generator[None, None, np.ndarray]:
-    """Newton iterations on the tool pose, moving only the ``free`` joints, yielding after each: returns the
-    corrected configuration (SingularityError if 30 do not reach 1e-9)."""
-    cols = np.arange(robot.nq) if free is None else free
+    """Newton iterations on the tool pose, moving only the ``free`` joints (all: the least-norm step
+    :func:`_least_norm_step`; six: :func:`_square_step`), yielding after each: returns the corrected
+    configuration (SingularityError if 30 do not reach 1e-9)."""
     q = q.copy()
     for _ in range(30):
         err = _pose_error(robot, q, target)
         if np.abs(err).max() < tol:
             return q
-        jac = robot.jacobian(q)[:, cols]
-        q[cols] += np.linalg.lstsq(jac, err, rcond=None)[0]
+        jac = _tool_jacobian(robot, q)
+        if free is None:
+            q += _least_norm_step(jac, err)
+        else:
+            q[free] += _square_step(jac[:, free], err)
         yield
     if np.abs(_pose_error(robot, q, target)).max() > 1e-9:
         raise SingularityError("pose correction did not converge while following the self-motion")
     return q
 
 
+def _least_norm_step(jac: np.ndarray, err: np.ndarray) -> np.ndarray:
+    """``J⁺ err`` (rad) for the 6×7 tool Jacobian ``jac`` (C-ordered): the Householder QR kernel
+    :func:`qpnso.linalg.least_norm_line` (1 µs of arithmetic, where ``np.linalg.lstsq`` spends ~50 µs in Python),
+    ``np.linalg.lstsq`` where that finds ``J`` rank-deficient."""
+    if jac.shape[1] == jac.shape[0] + 1:  # (the kernel's shape: one redundant joint)
+        x, _, sigma_floor = least_norm_line(jac, err)
+        if sigma_floor > 0.0:
+            return x
+    return np.linalg.lstsq(jac, err, rcond=None)[0]
+
+
+def _square_step(jac: np.ndarray, err: np.ndarray) -> np.ndarray:
+    """``J⁻¹ err`` (rad) for a square Jacobian ``jac`` (the six joints a limit crossing leaves free) by LU
+    (``np.linalg.solve``, a third of ``lstsq``'s time), ``np.linalg.lstsq`` where ``J`` is singular."""
+    try:
+        return np.linalg.solve(jac, err)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(jac, err, rcond=None)[0]
+
+
 def _null_direction(robot: Robot, q: np.ndarray, prev: np.ndarray, sigma_min: float) -> np.ndarray | None:
-    """Unit null-space direction of the tool Jacobian, oriented like ``prev``; None if singular."""
-    _, s, vt = np.linalg.svd(robot.jacobian(q))
-    if s[-1] < sigma_min:
-        return None
-    n = vt[-1]
+    """Unit null-space direction of the tool Jacobian at ``q`` (rad, checked), oriented like ``prev``; None if
+    singular (its least singular value below ``sigma_min``).  The null vector and a floor on that value from
+    :func:`qpnso.linalg.least_norm_line` (QR); the exact value from an SVD only where the floor (conservative by at
+    most √6) is below ``sigma_min``."""
+    jac = _tool_jacobian(robot, q)
+    n, sigma_floor = np.zeros(jac.shape[1]), 0.0
+    if jac.shape[1] == jac.shape[0] + 1:  # (the kernel's shape: one redundant joint)
+        _, n, sigma_floor = least_norm_line(jac, np.zeros(jac.shape[0]))
+    if sigma_floor < sigma_min:
+        _, s, vt = np.linalg.svd(jac)
+        if s[-1] < sigma_min:
+            return None
+        n = vt[-1]
     return n if n @ prev >= 0 else -n
 
 
@@ -493,12 +537,12 @@ def _crossing(
     robot: Robot, q_in: np.ndarray, q_out: np.ndarray, target: pin.SE3, tol: float
 ) -> Generator[None, None, tuple[np.ndarray, Cause]]:
     """Exact first limit crossing between a feasible and an infeasible configuration (the crossing joint pinned
-    at its limit, the other six solving the pose: :func:`_newton`, yielding after each iteration)."""
-    over = np.maximum(q_out - robot.q_max, 0) + np.maximum(robot.q_min - q_out, 0)
+    at its limit, the other six solving the pose: :func:`_newton`, yielding after each iteration).  The chord's
+    first point at a limit is at the fraction :func:`_limit_fraction` of each joint beyond its limit at ``q_out``."""
     frac = np.full(robot.nq, np.inf)
-    for j in np.flatnonzero(over > 0):
+    for j in np.flatnonzero((q_out > robot.q_max) | (q_out < robot.q_min)):
         limit = robot.q_max[j] if q_out[j] > robot.q_max[j] else robot.q_min[j]
-        frac[j] = (limit - q_in[j]) / (q_out[j] - q_in[j])
+        frac[j] = _limit_fraction(float(q_in[j]), float(q_out[j]), float(limit))
     k = int(np.argmin(frac))
     bound = "max" if q_out[k] > robot.q_max[k] else "min"
     q = q_in + frac[k] * (q_out - q_in)
@@ -507,13 +551,24 @@ def _crossing(
     return q, Cause("limit", k, bound)
 
 
+def _limit_fraction(inside: float, beyond: float, limit: float) -> float:
+    """Where on the chord from ``inside`` to ``beyond`` (rad, ``beyond`` past ``limit``) the joint reaches its
+    limit, as a fraction in [0, 1]: 0 when ``inside`` is not strictly inside it — a walk may start up to
+    ``check_q``'s 1e-9 rad past a limit (a controller's measured q), and a joint the step left where it was is then
+    beyond at both ends (the division by its zero motion was a divide-by-zero warning, and a start past the limit
+    a negative fraction, extrapolating the chord backwards)."""
+    if (limit - inside) * (beyond - limit) <= 0.0:  # inside is at or past the limit, on beyond's side
+        return 0.0
+    return (limit - inside) / (beyond - inside)
+
+
 class _Clearance:
     """The numerical walk's obstacles: a keep-out record (:func:`_keep_out`: the obstacles, the margin d_s) and
     the link capsules of ``robot``."""
 
-    def __init__(self, robot: Robot, obstacles: Sequence[Obstacle], margin: float) -> None:
+    def __init__(self, robot: Robot, obstacles: Sequence[Obstacle], margin: float, room: int = 0) -> None:
         self.robot = robot
-        rec, self.capsules = _keep_out(robot, obstacles, margin)
+        rec, self.capsules = _keep_out(robot, obstacles, margin, room)
         self.rec, self.G = rec, rec[0]
 
     def gap(self, q: np.ndarray) -> tuple[float, int]:
@@ -569,7 +624,8 @@ def _walk(
     q, ns, d = q0.copy(), ns0, direction
     for _ in range(opt.max_steps):
         q_new = yield from _newton(robot, q + opt.step_rad * d, target, opt.pose_tol)
-        status = arm_angle_status(robot, q_new)
+        pin.forwardKinematics(robot.model, robot.data, q_new)
+        status = _status_after_fk(robot)  # (arm_angle_status without checking q: a walk's own configuration)
         beyond = bool(np.any(q_new > robot.q_max) or np.any(q_new < robot.q_min))
         if beyond or (clear is not None and clear.gap(q_new)[0] < 0.0):
             yield  # (this step found the crossing; its exact solve is the next pieces)
@@ -599,9 +655,10 @@ class NumericalWalk:
     control tick of an arm without the closed form advances one a few pieces a tick
     (``ControllerConfig.interval_steps_per_tick``): a whole walk took 35 ms median on the Panda, and was renewed
     inside a tick every ``interval_period`` ticks of a moving tool.  With ``obstacles`` the walks also end where a
-    link capsule comes within ``margin`` (m) of one (:func:`_walk`).  Raises SingularityError where the self-motion
-    is undefined at ``q`` (here), JointLimitError for ``q`` outside its limits or InputError for a link at ``q``
-    within the margin."""
+    link capsule comes within ``margin`` (m) of one (:func:`_walk`); ``room``: the keep-out record's room for
+    obstacles (:func:`_keep_out`; the control tick gives its own, so the record's type does not change with the
+    number of obstacles).  Raises SingularityError where the self-motion is undefined at ``q`` (here),
+    JointLimitError for ``q`` outside its limits or InputError for a link at ``q`` within the margin."""
 
     def __init__(
         self,
@@ -610,10 +667,11 @@ class NumericalWalk:
         options: NumericalOptions | None = None,
         obstacles: Sequence[Obstacle] = (),
         margin: float = 0.03,
+        room: int = 0,
     ) -> None:
         opt = options or NumericalOptions()
         qv = robot.check_q(q)
-        clear = _Clearance(robot, obstacles, margin) if obstacles else None
+        clear = _Clearance(robot, obstacles, margin, room) if obstacles else None
         if clear is not None:
             clear.raise_if_within_margin(qv)
         self.ns0 = arm_angle(robot, qv)

@@ -57,7 +57,8 @@ _CHILD = textwrap.dedent(
 
     robot = qpnso.load_robot(robot_name)
     q0 = robot.sample_configuration()
-    obstacles = obstacles_around(robot, q0) if with_obstacles else ()
+    far = tuple(Sphere(center=(5.0 + i, 5.0, 5.0), radius=0.05) for i in range(5))  # (9 volumes: a room of 9)
+    obstacles = obstacles_around(robot, q0) + far if with_obstacles else ()
     ctrl = qpnso.Controller(robot, qpnso.ControllerConfig(strategy=strategy, obstacles=obstacles))
     before = signatures()
     dt, target = ctrl.config.dt, MovingTarget()
@@ -84,13 +85,17 @@ _CHILD = textwrap.dedent(
     q = q0.copy()
     for k in range(moving_ticks):  # the tool moving: intervals renewed (the Panda's walks)
         q, cmd = tick(q, tool_twist=target.twist(k * dt), dq=cmd.dq if k else None)
-    for k in range(40 if with_obstacles else 0):  # the volumes moved every tick (a walk under way restarts)
-        moved = Sphere(center=(0.6, 0.1 + 1e-4 * k, 0.4), radius=0.03)
+    for k in range(40 if with_obstacles else 0):  # the volumes moved every tick (a walk under way restarts), fewer
+        moved = Sphere(center=(0.6, 0.1 + 1e-4 * k, 0.4), radius=0.03)  # than the room
         if k % 2:
             ctrl.set_obstacles(obstacles[:3] + (moved,))  # its velocity estimated
         else:
-            ctrl.set_obstacles(obstacles, velocities=[None, [0.01, 0.0, 0.0], None, [0.0] * 6])
+            ctrl.set_obstacles(obstacles[:4], velocities=[None, [0.01, 0.0, 0.0], None, [0.0] * 6])
         q, cmd = tick(q, tool_twist=target.twist(k * dt))
+    if with_obstacles:
+        ctrl.set_obstacles(obstacles[:4])  # (fewer volumes than the room: a Panda walk to its end with them)
+        for k in range(800 if robot_name == "panda" else 20):
+            q, cmd = tick(q, tool_twist=target.twist(k * dt))
     for _ in range(30):  # held
         q, cmd = tick(q)
     for _ in range(20):  # a violent pull, then held: fallbacks, second passes, the tool limited

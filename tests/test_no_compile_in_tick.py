@@ -98,6 +98,10 @@ _CHILD = textwrap.dedent(
             q, cmd = tick(q, tool_twist=target.twist(k * dt))
     for _ in range(30):  # held
         q, cmd = tick(q)
+    frozen = q.copy()
+    frozen.setflags(write=False)
+    for given in (list(q), np.repeat(q, 2)[::2], frozen, q.astype(np.float32)):  # a list, a strided view, a
+        q, cmd = tick(given, dq=list(cmd.dq), tool_twist=(0.01, 0.0, 0.0, 0.0, 0.0, 0.0))  # read-only, float32
     for _ in range(20):  # a violent pull, then held: fallbacks, second passes, the tool limited
         q, cmd = tick(q, tool_twist=[2.0, 0.0, 0.0, 0.0, 1.0, 0.0])
     for _ in range(30):

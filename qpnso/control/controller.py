@@ -543,7 +543,7 @@ class Controller:
             return NumericalWalk(self.robot, q)
 
     def _first_interval(self, q: np.ndarray, state) -> None:
-        """A run's first continuity interval of an arm without the closed form, at ``q`` whole (35 ms median on
+        """A run's first continuity interval of an arm without the closed form, at ``q`` whole (9 ms median on
         the Panda); when it cannot be computed the tick tries again ``interval_period`` ticks later."""
         m = self.records.memory[0]
         try:

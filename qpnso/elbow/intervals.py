@@ -650,15 +650,16 @@ def _walk(
 class NumericalWalk:
     """The numerical continuity interval at ``q`` (rad) computed in pieces: :meth:`advance` takes at most a given
     number of pieces — one Newton iteration of a self-motion step's pose correction or of a limit crossing's exact
-    solve, or the rest of a step (``NumericalOptions.step_rad`` each: the limits, the arm angle, an SVD), about
-    0.1 ms each on the Panda — and returns the :class:`Interval` once both walks have ended (None before).  The
-    control tick of an arm without the closed form advances one a few pieces a tick
-    (``ControllerConfig.interval_steps_per_tick``): a whole walk took 35 ms median on the Panda, and was renewed
-    inside a tick every ``interval_period`` ticks of a moving tool.  With ``obstacles`` the walks also end where a
-    link capsule comes within ``margin`` (m) of one (:func:`_walk`); ``room``: the keep-out record's room for
-    obstacles (:func:`_keep_out`; the control tick gives its own, so the record's type does not change with the
-    number of obstacles).  Raises SingularityError where the self-motion is undefined at ``q`` (here),
-    JointLimitError for ``q`` outside its limits or InputError for a link at ``q`` within the margin."""
+    solve, or the rest of a step (``NumericalOptions.step_rad`` each: the limits, the arm angle, the next null
+    direction), 16 µs median and 0.24 ms p99.9 of CPU on the Panda (docs/changelog.md, issue 31) — and returns the
+    :class:`Interval` once both walks have ended (None before).  The control tick of an arm without the closed form
+    advances one a few pieces a tick (``ControllerConfig.interval_steps_per_tick``): a whole walk takes 9 ms median
+    on the Panda, and was once renewed inside a tick every ``interval_period`` ticks of a moving tool.  With
+    ``obstacles`` the walks also end where a link capsule comes within ``margin`` (m) of one (:func:`_walk`);
+    ``room``: the keep-out record's room for obstacles (:func:`_keep_out`; the control tick gives its own, so the
+    record's type does not change with the number of obstacles).  Raises SingularityError where the self-motion is
+    undefined at ``q`` (here), JointLimitError for ``q`` outside its limits or InputError for a link at ``q``
+    within the margin."""
 
     def __init__(
         self,

@@ -40,7 +40,7 @@ import numpy as np
 
 from qpnso.errors import ConfigError
 
-__all__ = ["SettingError", "check", "check_table", "from_dict", "out_of_range", "read_toml", "show"]
+__all__ = ["SettingError", "check", "check_table", "from_dict", "keywords_checked", "out_of_range", "read_toml", "show"]
 
 
 class SettingError(ConfigError):
@@ -105,15 +105,23 @@ def check(obj: Any) -> None:
         object.__setattr__(obj, name, _field_value(hint, getattr(obj, name), name, where))
 
 
-def check_table(cls: type, values: Any, where: str = "") -> dict[str, Any]:
-    """``values`` (a TOML table) checked against the fields of ``cls``, converted, without
-    building ``cls`` (so without its range checks): unknown keys are listed with the valid
-    ones, missing required keys named, nested tables built through their ``from_dict``."""
-    where = where or cls.__name__
-    if not isinstance(values, Mapping):
-        raise SettingError(
-            where, "", f"expected a table of {cls.__name__} settings, got {type(values).__name__}", show(values)
-        )
+def keywords_checked(cls: type) -> type:
+    """Class decorator (under ``@dataclass``): an unknown keyword given to ``cls(...)`` raises the
+    :class:`SettingError` that :func:`from_dict` gives for an unknown key (the valid keys listed), instead of
+    Python's ``TypeError``."""
+    init = cls.__init__
+
+    @functools.wraps(init)
+    def checked_init(self: Any, *args: Any, **kwargs: Any) -> None:
+        _refuse_unknown(cls, kwargs, cls.__name__)
+        init(self, *args, **kwargs)
+
+    cls.__init__ = checked_init  # type: ignore[misc]
+    return cls
+
+
+def _refuse_unknown(cls: type, values: Mapping, where: str) -> None:
+    """:class:`SettingError` naming the keys of ``values`` that are not fields of ``cls``, with the valid ones."""
     hints = _field_types(cls)
     unknown = sorted((str(k) for k in values if k not in hints))
     if unknown:
@@ -123,6 +131,18 @@ def check_table(cls: type, values: Any, where: str = "") -> dict[str, Any]:
             f"unknown key{'s' if len(unknown) > 1 else ''} "
             f"{', '.join(map(repr, unknown))}; valid keys: {', '.join(sorted(hints))}",
         )
+
+
+def check_table(cls: type, values: Any, where: str = "") -> dict[str, Any]:
+    """``values`` (a TOML table) checked against the fields of ``cls``, converted, without
+    building ``cls`` (so without its range checks): unknown keys are listed with the valid
+    ones, missing required keys named, nested tables built through their ``from_dict``."""
+    where = where or cls.__name__
+    if not isinstance(values, Mapping):
+        raise SettingError(
+            where, "", f"expected a table of {cls.__name__} settings, got {type(values).__name__}", show(values)
+        )
+    _refuse_unknown(cls, values, where)
     missing = [
         f.name
         for f in dataclasses.fields(cls)
@@ -134,6 +154,7 @@ def check_table(cls: type, values: Any, where: str = "") -> dict[str, Any]:
     if missing:
         more = f" (and {', '.join(map(repr, missing[1:]))})" if len(missing) > 1 else ""
         raise SettingError(where, "", f"missing key {missing[0]!r}{more}")
+    hints = _field_types(cls)
     return {name: _field_value(hints[name], value, name, where) for name, value in values.items()}
 
 

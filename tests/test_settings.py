@@ -165,8 +165,8 @@ def _wrong(hint: typing.Any, value: typing.Any) -> bool:
     if isinstance(value, np.generic):
         value = value.item()
     origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin is not None and type(None) in args:  # X | None
-        return value is not None and _wrong(next(a for a in args if a is not type(None)), value)
+    if origin is not None and type(None) in args:  # X | None, X | Y | None: wrong for every arm
+        return value is not None and all(_wrong(a, value) for a in args if a is not type(None))
     if origin is tuple:
         return (
             not isinstance(value, (list, tuple))

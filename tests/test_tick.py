@@ -138,7 +138,7 @@ def test_low_pass() -> None:
 def test_finish_tick_is_gravity_plus_the_projected_impedance(robot) -> None:
     """τ = g + (I − J̄J)ᵀ(K·dt·q̇ + D(q̇ − q̇_meas)) with J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ from Pinocchio, inverted by hand."""
     rng = np.random.default_rng(2)
-    ctrl = Controller(robot, ControllerConfig(strategy="qp"))
+    ctrl = Controller(robot, ControllerConfig(strategy="qp", ddq_max=1e9))  # (dq far from the last command)
     q = robot.random_q(rng, margin=0.2)
     ctrl.reset(q)
     ctrl.step(q)
@@ -251,8 +251,12 @@ def hand_problem(robot: qpnso.Robot, ctrl: Controller, q: np.ndarray, twist: np.
     pin.forwardKinematics(robot.model, data, q, v, np.zeros(7))
     drift = pin.getFrameClassicalAcceleration(robot.model, data, robot.tool_frame_id, pin.LOCAL_WORLD_ALIGNED).vector
     b1 = twist + cfg.pose_gain * e - 0.5 * DT * drift
-    lb = np.clip(cfg.joint_limit_gain * (robot.q_min - q), -robot.dq_max, robot.dq_max)
-    ub = np.clip(cfg.joint_limit_gain * (robot.q_max - q), -robot.dq_max, robot.dq_max)
+    a = robot.ddq_max
+    braking_lo = np.sqrt((a * DT / 2) ** 2 + 2 * a * (q - robot.q_min)) - a * DT / 2  # v(v + a·dt)/(2a) = distance
+    braking_hi = np.sqrt((a * DT / 2) ** 2 + 2 * a * (robot.q_max - q)) - a * DT / 2
+    lb = np.clip(np.maximum(cfg.joint_limit_gain * (robot.q_min - q), -braking_lo), -robot.dq_max, robot.dq_max)
+    ub = np.clip(np.minimum(cfg.joint_limit_gain * (robot.q_max - q), braking_hi), -robot.dq_max, robot.dq_max)
+    lb, ub = np.clip(lb, -a * DT, a * DT), np.clip(ub, -a * DT, a * DT)  # (from rest: the previous command is 0)
     N = np.eye(7) - np.linalg.pinv(J) @ J
     step = cfg.cost_gain * ctrl.cost.gradient(q)
     step *= min(1.0, cfg.nullspace_speed_max / np.linalg.norm(N @ step))
@@ -304,7 +308,7 @@ def test_every_strategy_takes_the_one_path(robot, monkeypatch) -> None:
         counts = count_paths(ctrl, monkeypatch)
         ctrl.reset(Q0)
         for _ in range(5):
-            assert ctrl.step(Q0, tool_twist=[0.01, 0, 0, 0, 0, 0]).ok
+            assert ctrl.step(Q0, tool_twist=[0.002, 0, 0, 0, 0, 0]).ok  # (within ddq_max·dt of rest)
         assert counts == {"line": 5, "cascade": 0}, name
 
 

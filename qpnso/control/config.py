@@ -34,7 +34,7 @@ from qpnso.elbow.rom import ElbowConfig
 from qpnso.model.costs import CostWeights
 from qpnso.model.obstacles import Obstacle
 from qpnso.qp import QPSettings
-from qpnso.settings import SettingError, check, out_of_range
+from qpnso.settings import SettingError, check, keywords_checked, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
 
 _NOT_OK_BITS = FLAG_QP_FAILED | FLAG_ELBOW_DROPPED | FLAG_INTERNAL_ERROR
@@ -56,13 +56,14 @@ class Status(enum.Flag):
     TORQUE_SATURATED = FLAG_TORQUE_SATURATED  # τ clipped to the model's effort limits
     QP_FALLBACK = FLAG_QP_FALLBACK  # ProxQP did not solve within its iteration budget: DAQP answered
     ELBOW_OUTSIDE_ROM = FLAG_ELBOW_OUTSIDE_ROM  # the arm angle is outside ROM_t this tick
-    INTERNAL_ERROR = FLAG_INTERNAL_ERROR  # a tick could not be computed: joints stopped, τ = g(q)
+    INTERNAL_ERROR = FLAG_INTERNAL_ERROR  # a tick could not be computed: joints brought to rest at ddq_max, τ = g(q)
     QP_DEADLINE = FLAG_QP_DEADLINE  # the cascade's time budget was spent: lower levels skipped (with QP_FAILED)
     OBSTACLE = FLAG_OBSTACLE  # a link is inside its margin of an obstacle (or overlaps it), whatever the cause,
     # or cannot keep its margin (the tool's or the obstacle's motion forces it): Command.clearance and the message
     # say which link and obstacle
 
 
+@keywords_checked
 @dataclass
 class ControllerConfig:
     """Every setting of the controller.  Angles in degrees where marked ``_deg``.
@@ -109,8 +110,15 @@ class ControllerConfig:
     q_limit_tolerance_deg: float = 2.0  # deg (>= 0): how far outside its limits a measured joint
     # may be and still be brought back (Status.Q_OUT_OF_LIMITS); beyond it the tick raises
     recovery_speed: float = 0.2  # rad/s (> 0): the largest speed bringing a joint back inside its limits
+    ddq_max: float | tuple[float, ...] | None = None  # rad/s² (> 0), one for all joints or one per joint: a
+    # command's change from one tick to the next is at most ddq_max·dt on each joint, whatever the strategy, and
+    # the safe fallbacks too (they slow the joints down at this rate); None: the robot's (Robot.ddq_max,
+    # models/acceleration.json)
     dq_tolerance_factor: float = 5.0  # (>= 1): a measured dq beyond this multiple of the velocity limit raises
     # (a hand can push a torque-controlled arm past its rated speed; deg/s for rad/s is 57×)
+    tool_speed_accepted: float = 5.0  # m/s (> 0): a tool twist whose linear speed is above this is refused
+    # (InputError): 2.5× the 2 m/s of a violent pull; mm/s given for m/s is 1000×
+    tool_angular_speed_accepted: float = 20.0  # rad/s (> 0): the same for its angular speed (deg/s for rad/s: 57×)
     qp_backend: str = "proxsuite"
     qp_settings: QPSettings = field(default_factory=QPSettings)
     solver_time_budget: float | None = None  # s of the control thread's CPU time for the general cascade: a
@@ -158,6 +166,8 @@ class ControllerConfig:
             "obstacle_speed",
             "obstacle_recovery_speed",
             "obstacle_weight_ratio",
+            "tool_speed_accepted",
+            "tool_angular_speed_accepted",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -180,6 +190,8 @@ class ControllerConfig:
             raise out_of_range(self, "interval_period", "must be >= 1 tick")
         if self.interval_steps_per_tick < 1:
             raise out_of_range(self, "interval_steps_per_tick", "must be >= 1 step")
+        if self.ddq_max is not None and not all(a > 0 for a in np.atleast_1d(self.ddq_max)):
+            raise out_of_range(self, "ddq_max", "must be > 0 rad/s² on every joint, or None (the robot's)")
         if self.dq_tolerance_factor < 1:
             raise out_of_range(self, "dq_tolerance_factor", "must be >= 1")
         if not 0 <= self.obstacle_margin < self.obstacle_influence:
@@ -260,7 +272,7 @@ def _status(bits: int) -> "Status":
     return Status(int(bits)) if bits else Status.OK
 
 
-_NOT_FINITE_MESSAGE = "the command was not finite: joints stopped"
+_NOT_FINITE_MESSAGE = "the command was not finite: joints brought to rest at ddq_max"
 
 
 def _stamped(cmd: Command, bits: int, t0: float) -> Command:

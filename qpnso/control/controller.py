@@ -43,7 +43,7 @@ from qpnso.control.flags import (
     PREDICTION_MISSED,
 )
 from qpnso.control.memory import KEEP_OUT_ROWS, interval_failed, new_memory, store_interval
-from qpnso.control.params import interval_in_tick, tick_params
+from qpnso.control.params import acceleration_limits, interval_in_tick, tick_params
 from qpnso.control.rows import RowKind
 from qpnso.control.rows.kind import row_counts
 from qpnso.control.state import StateEvaluator, sanitize_state
@@ -53,6 +53,7 @@ from qpnso.control.tick import (
     TICK_Q_REFUSED,
     TICK_STATE_NOT_FINITE,
     TICK_TWIST_NOT_FINITE,
+    TICK_TWIST_TOO_FAST,
     Report,
     begin_tick,
     finish_tick,
@@ -121,6 +122,11 @@ def checked_rows(rows: Sequence[RowKind], robot: Robot, dt: float) -> tuple[RowK
     return out
 
 
+STOPPING = "joints brought to rest at ddq_max"
+"""What a stop command does: the joints slow down at their acceleration bound (a command's change per tick is
+bounded), gravity compensated."""
+
+
 class Controller:
     """Hierarchical-QP null-space controller of a 7-DOF arm (docs/method.md §7)."""
 
@@ -136,6 +142,7 @@ class Controller:
         self.config = config or ControllerConfig()
         cfg = self.config
         self.rows = checked_rows(rows, robot, cfg.dt)
+        self.ddq_max = acceleration_limits(robot, cfg)  # rad/s²: |Δq̇| ≤ ddq_max·dt per tick, every command
         self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed, compile=cfg.compile)
         _, _, self._hard_room, self._soft_room = row_counts(self.rows, robot)
         room = self._hard_room + self._soft_room
@@ -242,6 +249,7 @@ class Controller:
             0,
         )
         self._dq_prev = np.zeros(self.robot.nq)
+        self.records.command["dq"] = 0.0  # (the tick bounds its command's change from the last one: from rest)
         self._twist_prev = np.zeros(6)  # m/s, rad/s: the previous tick's tool twist (its change is predicted)
         self._walk: NumericalWalk | None = None  # an arm without the closed form: its interval's walk under way
         if not self.records.params[0]["closed_form_interval"]:  # its first interval here, whole (a reset is no
@@ -393,6 +401,8 @@ class Controller:
         if code == TICK_TWIST_NOT_FINITE:
             as_vector(twist, 6, "tool_twist")  # raises, naming the entries
             raise InputError("tool_twist contains NaN or inf")  # (never reached: the kernel and as_vector agree)
+        if code == TICK_TWIST_TOO_FAST:
+            self._refuse_twist(twist)
         if code == TICK_STATE_NOT_FINITE:
             bits = int(rec.report[0]["bits"])
             return self._stop(qv, state[0]["g"].copy(), bits, t0, "the arm's state is not finite")
@@ -408,7 +418,7 @@ class Controller:
         if why:
             bits |= FLAG_QP_FAILED | (FLAG_QP_DEADLINE if rec.solution[0]["out_of_time"] else 0)
             stopped = rec.solution[0]["outcome"] == STOPPED
-            message = f"QP failed ({why}): " + ("joints stopped" if stopped else "tool held, no null-space motion")
+            message = f"QP failed ({why}): " + (STOPPING if stopped else "tool held, no null-space motion")
         return self._command(bits, t0, message, solve_time)
 
     def _second_pass(self, qv: np.ndarray, dq_meas: np.ndarray) -> tuple[str, int, float]:
@@ -483,6 +493,16 @@ class Controller:
             f"q is in radians"
         )
 
+    def _refuse_twist(self, twist: np.ndarray) -> None:
+        """Raise :class:`InputError` for a tool twist faster than the accepted tool speeds, with its speeds."""
+        cfg = self.config
+        v, w = float(np.linalg.norm(twist[:3])), float(np.linalg.norm(twist[3:]))
+        raise InputError(
+            f"tool_twist: linear speed {v:.6g} m/s, angular speed {w:.6g} rad/s is beyond the accepted "
+            f"{cfg.tool_speed_accepted:g} m/s, {cfg.tool_angular_speed_accepted:g} rad/s "
+            f"(ControllerConfig.tool_speed_accepted, tool_angular_speed_accepted); tool_twist is in m/s then rad/s"
+        )
+
     def _checked_dq(self, dq: object) -> np.ndarray:
         """The measured ``dq`` (rad/s) as a vector; :class:`InputError` naming the first joint faster than
         ``dq_tolerance_factor`` times its velocity limit."""
@@ -499,8 +519,9 @@ class Controller:
     def _stop(self, qv: np.ndarray, gravity: np.ndarray, bits: int, t0: float, why: str) -> Command:
         """The stop command of a tick that could not be computed (``why``): dq 0, q_des = q, τ = ``gravity``
         (g(q), saturated; zero where not finite), ``QP_FAILED`` with ``bits``."""
+        self.records.memory[0]["dq_prev"] = self._dq_prev  # (the last command sent: the stop starts from it)
         bits |= stop_tick(qv, gravity, self.tick)
-        return self._command(bits, t0, f"{why}: joints stopped", 0.0)
+        return self._command(bits, t0, f"{why}: {STOPPING}", 0.0)
 
     def _gravity_or_zero(self, qv: np.ndarray) -> np.ndarray:
         """g(q) (N·m, Pinocchio) for the stop command after an unexpected exception; zero if that fails too

@@ -13,7 +13,7 @@ FLAG_COST_UNDEFINED = 128  # the cost or its gradient is not finite here: no cos
 FLAG_TORQUE_SATURATED = 256  # τ clipped to the model's effort limits
 FLAG_QP_FALLBACK = 512  # ProxQP did not solve within its iteration budget: DAQP answered
 FLAG_ELBOW_OUTSIDE_ROM = 1024  # the arm angle is outside ROM_t this tick
-FLAG_INTERNAL_ERROR = 2048  # a tick could not be computed: joints stopped, τ = g(q)
+FLAG_INTERNAL_ERROR = 2048  # a tick could not be computed: joints brought to rest at ddq_max, τ = g(q)
 FLAG_QP_DEADLINE = 4096  # the cascade's time budget was spent: lower levels skipped (with QP_FAILED)
 FLAG_OBSTACLE = 8192  # a link inside its margin of an obstacle (or overlapping it), or unable to keep its margin
 

@@ -46,6 +46,7 @@ def memory_dtype(n: int) -> np.dtype:
             ("ref_R", f8, (3, 3)),  # the tool's reference rotation (world ← tool)
             ("ref_p", f8, 3),  # and position (m, world)
             ("cost_step", f8, n),  # rad/s: the qp strategy's low-passed cost step
+            ("dq_prev", f8, n),  # rad/s: the previous tick's command (zero after a reset: from rest)
             ("keep_out_d", f8, KEEP_OUT_ROWS),  # m: this tick's keep-out rows' distances (rows.obstacles)
         ]
     )

@@ -16,6 +16,7 @@ from qpnso.elbow.clearance import KeepOut, keep_out_dtype, keep_out_record
 from qpnso.elbow.closed_form import srs_dtype
 from qpnso.elbow.intervals import closed_form_applies
 from qpnso.elbow.srs import srs_geometry
+from qpnso.errors import ConfigError
 from qpnso.model.collision import LinkCapsules
 from qpnso.model.robot import Robot
 from qpnso.records import new_record
@@ -56,6 +57,8 @@ _SCALARS = (
     "interval_period",  # ticks between continuity-interval updates while the tool moves
     "closed_form_interval",  # 1: the tick renews the continuity interval itself (srs, closed form); 0: Python does
     "tool_moved_tol",  # TOOL_MOVED_TOL
+    "tool_speed_accepted",  # m/s: a faster tool twist is refused (tick.twist_status)
+    "tool_angular_speed_accepted",  # rad/s
 )
 _VECTORS = (
     "q_check_lo",  # rad: q_min − Q_CHECK_WIDENING; below, Q_OUT_OF_LIMITS
@@ -65,6 +68,7 @@ _VECTORS = (
     "q_min",  # rad
     "q_max",  # rad
     "dq_max",  # rad/s
+    "ddq_max",  # rad/s²: a command's change per tick at most ddq_max·dt (0: none; rows.joint_limits)
     "tau_limit",  # N·m; 0: none given
 )
 
@@ -125,6 +129,8 @@ def tick_params(
         elbow_offset_min=ELBOW_OFFSET_MIN_M,
         interval_period=cfg.interval_period,
         tool_moved_tol=TOOL_MOVED_TOL,
+        tool_speed_accepted=cfg.tool_speed_accepted,
+        tool_angular_speed_accepted=cfg.tool_angular_speed_accepted,
         q_check_lo=robot.q_min - Q_CHECK_WIDENING,
         q_check_hi=robot.q_max + Q_CHECK_WIDENING,
         q_accept_lo=robot.q_min - tolerance,
@@ -132,6 +138,7 @@ def tick_params(
         q_min=robot.q_min,
         q_max=robot.q_max,
         dq_max=robot.dq_max,
+        ddq_max=acceleration_limits(robot, cfg),
         tau_limit=np.where(np.isfinite(limit) & (limit > 0), limit, 0.0),
     )
     bounds = [kind.bounds(robot) for kind in rows]
@@ -158,6 +165,22 @@ def tick_params(
         params["geo"] = keep_out_record(robot, capsules, obstacle_room, cfg.obstacles, KeepOut.of(cfg))
     params["closed_form_interval"] = interval_in_tick(robot, params)
     return params
+
+
+def acceleration_limits(robot: Robot, config) -> np.ndarray:
+    """The joint acceleration bounds (rad/s²) of ``config.ddq_max`` (one for all joints or one per joint), or
+    the robot's own (:attr:`~qpnso.model.robot.Robot.ddq_max`) when it is None; :class:`ConfigError` when
+    the count is not the robot's."""
+    if config.ddq_max is None:
+        return np.array(robot.ddq_max, dtype=float)
+    values = np.atleast_1d(np.asarray(config.ddq_max, dtype=float))
+    if values.size == 1:
+        return np.full(robot.nq, values[0])
+    if values.shape != (robot.nq,):
+        raise ConfigError(
+            f"ddq_max: {values.size} values for {robot.name}'s {robot.nq} joints; give one, or one per joint (rad/s²)"
+        )
+    return values
 
 
 def interval_in_tick(robot: Robot, params: np.ndarray) -> float:

@@ -50,24 +50,33 @@ from qpnso.control.memory import (
 )
 from qpnso.control.params import params_dtype
 from qpnso.control.rows.elbow import elbow_row
-from qpnso.control.rows.joint_limits import velocity_bounds
+from qpnso.control.rows.joint_limits import acceleration_bounds, bounded_change, velocity_bounds
 from qpnso.control.rows.kind import add_rows
 from qpnso.control.rows.obstacles import keep_out_torque, obstacle_bits, obstacle_rows, soft_violation
 from qpnso.control.state import PREDICTION_TOLERANCE, sanitize_state, state_dtype
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, nullspace_part
-from qpnso.qp.problem import SOLVED, problem_dtype, solution_dtype
+from qpnso.qp.problem import SOLVED, STOPPED, problem_dtype, solution_dtype
 
 LOG3_NEAR_PI = 0.75 * math.pi
 """rad: above this angle :func:`pose_error` takes the rotation's axis from its symmetric part (the
 antisymmetric part, ``2 sin θ·a``, vanishes at π: from it, the rotation was off by 1.6e-9 at π − 1e-3;
 from the symmetric part by 1e-15 from here to π, measured against ``pinocchio.exp3``)."""
 
-TICK_READY, TICK_NOT_FINITE, TICK_Q_REFUSED, TICK_STATE_NOT_FINITE, TICK_NEED_INTERVAL, TICK_TWIST_NOT_FINITE = range(6)
+(
+    TICK_READY,
+    TICK_NOT_FINITE,
+    TICK_Q_REFUSED,
+    TICK_STATE_NOT_FINITE,
+    TICK_NEED_INTERVAL,
+    TICK_TWIST_NOT_FINITE,
+    TICK_TWIST_TOO_FAST,
+) = range(7)
 """Codes of :func:`begin_tick`: the problem is ready; ``q`` has a NaN or an infinite entry, or is beyond
 its limits by more than the accepted tolerance (nothing done: the caller raises); the state at ``q`` is not
 finite (the caller stops the joints); the continuity interval is due and has no closed form (the memory
 advanced: the caller renews it numerically, then calls :func:`begin_tick` again); the tool twist has a NaN
-or an infinite entry (nothing done: the caller raises)."""
+or an infinite entry, or is faster than the accepted tool speed (:func:`twist_status`; nothing done: the caller
+raises)."""
 
 TOOL_RESIDUAL_REPORTED = 1e-6
 """m/s and rad/s: a level-1 residual above this (joint bounds or a singular Jacobian stop
@@ -225,6 +234,22 @@ def limits_status(q, low, high):
 
 
 @njit(cache=True)
+def twist_status(twist, P):
+    """:data:`TICK_READY` for a tool twist (m/s then rad/s) the arm can be asked to follow;
+    :data:`TICK_TWIST_NOT_FINITE` for a NaN or inf entry; :data:`TICK_TWIST_TOO_FAST` for a linear speed above
+    ``P.tool_speed_accepted`` m/s or an angular speed above ``P.tool_angular_speed_accepted`` rad/s (a twist in
+    mm/s or deg/s, a runaway input: never chased at the joints' velocity limits)."""
+    for i in range(6):
+        if not math.isfinite(twist[i]):
+            return TICK_TWIST_NOT_FINITE
+    v = math.sqrt(twist[0] * twist[0] + twist[1] * twist[1] + twist[2] * twist[2])
+    w = math.sqrt(twist[3] * twist[3] + twist[4] * twist[4] + twist[5] * twist[5])
+    if v > P.tool_speed_accepted or w > P.tool_angular_speed_accepted:
+        return TICK_TWIST_TOO_FAST
+    return TICK_READY
+
+
+@njit(cache=True)
 def cost_step(J, cost_gradient, gain, speed_max):
     """The ``qp`` strategy's step ``k∇c`` (rad/s), scaled so that its part in ``ker J`` (what the
     null space can do) is at most ``speed_max`` rad/s (the saturation of [M 20])."""
@@ -315,9 +340,10 @@ def begin_tick(q, twist, tick, follow):
         return TICK_NOT_FINITE
     if limit == 1 and limits_status(q, P.q_accept_lo, P.q_accept_hi):
         return TICK_Q_REFUSED
-    for i in range(6):
-        if not math.isfinite(twist[i]):
-            return TICK_TWIST_NOT_FINITE
+    code = twist_status(twist, P)
+    if code != TICK_READY:
+        return code
+    m.dq_prev[:] = t.command.dq  # (the last tick's command: this one's changes by at most ddq_max·dt)
     bits = sanitize_state(s) | (FLAG_Q_OUT_OF_LIMITS if limit == 1 else 0)
     r.bits = bits
     if bits & FLAG_INTERNAL_ERROR:
@@ -349,6 +375,7 @@ def begin_tick(q, twist, tick, follow):
     pb.A1[:] = s.J
     pb.b1[:] = level1_target(twist, e, P, s.drift)
     pb.lb[:], pb.ub[:] = velocity_bounds(q, P)
+    acceleration_bounds(pb.lb, pb.ub, m.dq_prev, P)
     pb.has_level2, pb.n_hard, pb.n_soft = 0, 0, 0
     add_rows(pb, s, P)  # the row kinds' rows (qpnso.control.rows)
     obstacle_rows(pb, s, P, r, m)  # the keep-out rows (qpnso.control.rows.obstacles)
@@ -371,7 +398,9 @@ def stop_tick(q, gravity, tick):
     c.dq[:] = 0.0
     c.q_des[:] = q
     c.tau[:] = gravity
-    return finish_command(q, c, gravity, P, r) | FLAG_QP_FAILED
+    bits = finish_command(q, c, gravity, P, r) | FLAG_QP_FAILED
+    bounded_change(q, c, m.dq_prev, P)  # (slowing down at ddq_max from the last command, not a step to rest)
+    return bits
 
 
 @njit(cache=True)
@@ -415,10 +444,14 @@ def finish_tick(q, dq_meas, tick):
     ``q̇`` of a tool that is not limited is farther than :data:`~qpnso.control.state.PREDICTION_TOLERANCE` from
     the one level 1's second-order term was taken along (a limited tool is off its reference anyway)."""
     t = tick[0]
-    s, P, S, r, c = t.state, t.params, t.solution, t.report, t.command
+    s, P, S, r, c, pb = t.state, t.params, t.solution, t.report, t.command, t.problem
     dq = c.dq
     dq[:] = S.x
+    if S.outcome != STOPPED:  # (an answer within the feasibility tolerance: exactly within the bounds)
+        for i in range(dq.shape[0]):
+            dq[i] = min(max(dq[i], pb.lb[i]), pb.ub[i])
     c.q_des[:] = q + P.dt * dq
+    bounded_change(q, c, t.memory.dq_prev, P)  # (a stopped QP's zero: reached at ddq_max)
     tau_null = c.spring + c.stiffness_dt * dq + c.damping * (c.damp_cmd * dq - dq_meas)
     keep_out_torque(t.problem, r, P, t.memory, dq_meas, tau_null)  # (the keep-out rows' wall: every strategy)
     c.tau[:] = s.g + dynamically_consistent_projection(s.A, s.J, tau_null)[0]
@@ -427,4 +460,6 @@ def finish_tick(q, dq_meas, tick):
         bits |= answer_bits(S.tool_residual, soft_violation(t.problem, dq, r.obstacle_first, r.obstacle_rows))
         if not bits & FLAG_TOOL_LIMITED and prediction_missed(S.x, s.predicted):
             bits |= PREDICTION_MISSED
-    return bits | obstacle_bits(t.problem, dq, r, P) | finish_command(q, c, s.g, P, r)
+    bits |= obstacle_bits(pb, dq, r, P) | finish_command(q, c, s.g, P, r)
+    bounded_change(q, c, t.memory.dq_prev, P)  # (a command replaced by the stop command: reached at ddq_max)
+    return bits

@@ -28,7 +28,7 @@ from qpnso.errors import InputError
 from qpnso.model.codegen import FastFunction
 from qpnso.model.robot import Robot, as_vector
 from qpnso.model.symbolic import SymbolicModel
-from qpnso.settings import check, out_of_range
+from qpnso.settings import check, keywords_checked, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
 
 TERMS = ("mass", "inertia", "friction_force", "friction_torque")
@@ -45,6 +45,7 @@ def principal_masses(lambda_inv_v: np.ndarray) -> np.ndarray:
 """Names of the four cost terms of [M 18], in order."""
 
 
+@keywords_checked
 @dataclass(frozen=True)
 class CostWeights:
     """Weights ``w_m, w_i, w_f, w_τ`` of the combined cost [M 18] (dimensionless).

@@ -149,7 +149,8 @@ class Robot:
     """A serial arm: Pinocchio model and data, limits, tool frame and friction.
 
     Attributes use SI units: ``q_min``, ``q_max`` (rad), ``dq_max`` (rad/s),
-    ``tau_limit`` (N·m).  ``tool_frame_id`` is the Pinocchio frame at the tool
+    ``ddq_max`` (rad/s²: the bound on a command's change per second, ``models/acceleration.json`` for a shipped
+    robot, else :data:`ASSUMED_DDQ_MAX`), ``tau_limit`` (N·m).  ``tool_frame_id`` is the Pinocchio frame at the tool
     point.  ``data`` is the model's scratch data, reused by every call (not
     thread-safe: give each thread its own ``Robot``).
     """
@@ -173,6 +174,7 @@ class Robot:
         self.q_max = np.array(model.upperPositionLimit, dtype=float)
         self.dq_max = np.array(model.velocityLimit, dtype=float)
         self.tau_limit = np.array(model.effortLimit, dtype=float)
+        self.ddq_max = _acceleration_limits(name, self.nq)
         self._check_model()
 
     def _check_model(self) -> None:
@@ -419,6 +421,21 @@ def _armature(name: str, model: pin.Model) -> np.ndarray:
     if name in table:
         return _checked_armature(table[name]["armature_kgm2"], model.nv)
     return np.array(model.armature, dtype=float)
+
+
+ASSUMED_DDQ_MAX = 10.0
+"""rad/s²: the joint acceleration bound of a robot that ``models/acceleration.json`` does not list (a URDF has
+no field for it): the value assumed for the KUKA arms there, within the 7.5–20 rad/s² the Franka Panda's maker
+publishes.  An assumption: give ``ControllerConfig.ddq_max`` for your robot."""
+
+
+def _acceleration_limits(name: str, n: int) -> np.ndarray:
+    """The joint acceleration bounds (rad/s²) of ``models/acceleration.json`` for a shipped robot, else
+    :data:`ASSUMED_DDQ_MAX` on every joint."""
+    table = _json_table(MODELS_DIR / "acceleration.json")
+    if name in table:
+        return as_vector(table[name]["ddq_max_rad_s2"], n, "ddq_max")
+    return np.full(n, ASSUMED_DDQ_MAX)
 
 
 def _checked_armature(values: object, n: int) -> np.ndarray:

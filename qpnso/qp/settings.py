@@ -15,12 +15,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from qpnso.records import new_record
+from qpnso.settings import keywords_checked
 
 __all__ = ["QPSettings"]
 
 NATIVE_BACKEND = "proxsuite"
 
 
+@keywords_checked
 @dataclass(frozen=True)
 class QPSettings:
     """Tolerances of the cascade and of its QP back ends.

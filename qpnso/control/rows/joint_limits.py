@@ -1,7 +1,10 @@
 """The joint limits as the QP's bounds (docs/method.md §7.2): the damper on each joint angle, within the
-joint's velocity limit."""
+joint's velocity limit and the speed from which it can still stop before the limit; and the bound on a
+command's change from one tick to the next (the joint acceleration limit ``ddq_max``)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -10,9 +13,27 @@ from qpnso.control.rows.damper import damper
 
 
 @njit(cache=True)
+def braking_speed(distance, ddq_max, dt):
+    """The largest speed (rad/s) towards a limit ``distance`` rad away from which a joint slowed by ``a·dt`` every
+    tick (a = ``ddq_max``) stops before the limit: ``v`` with ``v(v + a·dt)/(2a) = distance − a·dt²/8``.  From
+    ``v = K·a·dt`` the joint travels ``Σ_k (v − k·a·dt)·dt = v(v + a·dt)/(2a)`` exactly; from a speed between two
+    multiples, up to ``a·dt²/8`` more (the last partial step), hence the margin.  Viable: one tick at that speed
+    leaves ``braking_speed(distance − v·dt) = v − a·dt``, so slowing down at ``a`` always meets the next bound.
+    ``ddq_max`` ≤ 0: none (inf); a joint within ``a·dt²/8`` of the limit or past it: 0."""
+    if ddq_max <= 0.0:
+        return math.inf
+    reach = distance - 0.125 * ddq_max * dt * dt
+    if reach <= 0.0:
+        return 0.0
+    half = 0.5 * ddq_max * dt
+    return math.sqrt(half * half + 2.0 * ddq_max * reach) - half
+
+
+@njit(cache=True)
 def velocity_bounds(q, P):
     """``(lb, ub)`` (rad/s) on q̇: the damper (:func:`~qpnso.control.rows.damper.damper`) on each joint,
-    ``γ(q_min − q) ≤ q̇ ≤ γ(q_max − q)`` (γ = ``P.joint_limit_gain``), clipped to ``±dq_max`` with ``ub ≥ lb``.
+    ``γ(q_min − q) ≤ q̇ ≤ γ(q_max − q)`` (γ = ``P.joint_limit_gain``), no faster towards a limit than
+    :func:`braking_speed` (``P.ddq_max``), clipped to ``±dq_max`` with ``ub ≥ lb``.
     A joint outside a limit is pushed back at rate γ and moves at most at ``P.recovery_speed`` rad/s
     either way (the damper caps the return; the joint's other side is capped here): never at its velocity
     limit."""
@@ -25,7 +46,44 @@ def velocity_bounds(q, P):
             hi = min(hi, recovery)
         elif q[i] > P.q_max[i]:
             lo = max(lo, -recovery)
+        else:  # inside: slow enough to stop before either limit at the acceleration bound
+            hi = min(hi, braking_speed(P.q_max[i] - q[i], P.ddq_max[i], P.dt))
+            lo = max(lo, -braking_speed(q[i] - P.q_min[i], P.ddq_max[i], P.dt))
         dq_max = P.dq_max[i]
         lo, hi = min(max(lo, -dq_max), dq_max), min(max(hi, -dq_max), dq_max)
         lb[i], ub[i] = lo, max(hi, lo)
     return lb, ub
+
+
+@njit(cache=True)
+def acceleration_bounds(lb, ub, dq_prev, P):
+    """The bounds ``lb ≤ q̇ ≤ ub`` (rad/s) narrowed, in place, to the box ``dq_prev ± ddq_max·dt`` around the
+    previous command: where they meet, their intersection; where they do not (a joint to be pushed back faster
+    than it can change speed), the point of the box nearest them — the command's change is bounded first
+    (``P.ddq_max`` ≤ 0 on a joint: no bound there)."""
+    for i in range(lb.shape[0]):
+        step = P.ddq_max[i] * P.dt
+        if step > 0.0:
+            lo, hi = dq_prev[i] - step, dq_prev[i] + step
+            lb[i] = min(max(lb[i], lo), hi)
+            ub[i] = max(min(ub[i], hi), lo)
+
+
+@njit(cache=True)
+def bounded_change(q, c, dq_prev, P):
+    """The command record ``c``'s ``dq`` (rad/s) moved, in place, into ``dq_prev ± ddq_max·dt`` and ``±dq_max``,
+    ``q_des = q + dt·dq`` following: every command, a fallback's or a stop's too, changes each joint's speed by
+    at most ``ddq_max·dt`` per tick (a stop then slows the joints down at ``ddq_max``).  Returns whether it
+    moved an entry."""
+    moved = False
+    for i in range(q.shape[0]):
+        step = P.ddq_max[i] * P.dt
+        v = c.dq[i]
+        if step > 0.0:
+            v = min(max(v, dq_prev[i] - step), dq_prev[i] + step)
+        v = min(max(v, -P.dq_max[i]), P.dq_max[i])
+        if v != c.dq[i]:
+            c.dq[i] = v
+            c.q_des[i] = q[i] + P.dt * v
+            moved = True
+    return moved

@@ -1190,3 +1190,32 @@ def test_the_general_cascade_refuses_a_bad_answer(monkeypatch, answer: str, word
     res = hqp.solve(levels, lb, ub)
     assert not res.ok and res.failed_level == 0 and res.x is None
     assert res.levels[0].status is LevelStatus.INACCURATE and words in res.levels[0].message
+
+
+@pytest.mark.parametrize("off", [3.4e-6, 1e-3])
+def test_an_answer_a_little_off_its_bounds_is_projected_onto_them(off: float) -> None:
+    """Issue 31 item 2: on one CPU, DAQP met a bound row of a joint the free directions barely moved (its row of Z
+    ~1e-6) only to 3.4e-6, and the level was refused (QP_FAILED).  A back end's answer off its bounds by at most
+    ``bound_repair_tol`` (1e-4 rad/s) is clipped onto them, its hard rows checked again; farther off, refused."""
+    qp = HierarchicalQP(3)
+    levels = [Level(A=np.array([[1.0, 0.0, 0.0]]), b=np.array([0.5])), Level(g=np.array([0.0, -1.0, -1.0]))]
+    exact = qp.solve(levels, -np.ones(3), np.ones(3))
+    np.testing.assert_allclose(exact.x, [0.5, 1.0, 1.0], atol=1e-9)
+    real = qp._backend.solve_arrays
+
+    def off_bound(k, arrays, warm=True):  # level 2's answer pushed `off` beyond the upper bound of joint 3
+        raw = real(k, arrays, warm)
+        if k == 1 and raw.v is not None:
+            z = np.array(raw.v, dtype=float)
+            Z = np.linalg.lstsq(arrays.C[-3:, : z.size], np.eye(3), rcond=None)[0]  # (z from x: the bound rows are Z)
+            raw.v = z + Z @ np.array([0.0, 0.0, off])
+        return raw
+
+    qp._backend.solve_arrays = off_bound
+    result = qp.solve(levels, -np.ones(3), np.ones(3))
+    if off <= QPSettings().bound_repair_tol:
+        assert result.ok
+        np.testing.assert_allclose(result.x, [0.5, 1.0, 1.0], atol=1e-12)
+        assert np.all(result.x <= 1.0)
+    else:
+        assert not result.ok and "violated by 0.001" in result.status

@@ -209,6 +209,9 @@ def check_level(state, buf, level, v, tol):
     x_prev, Z = _basis(S, a)
     basis = Basis(x_prev, Z, Z.shape[1] == Z.shape[0], True)
     x, worst, slack = level_answer(v, basis, qp_views(a, S.nv, S.m, S.box), S.slack_start, S.n_slack)
+    T = tol[0]
+    if T.feasibility_tol < worst <= T.bound_repair_tol:
+        worst = repair_bounds(x, a.lb, a.ub, Inherited(a.lb, a.ub, a.C[: S.p], a.l[: S.p], a.u[: S.p]), level, slack)
     a.xk[:], S.worst = x, worst
     a.slack[: slack.shape[0]] = slack
     if level.A.shape[0]:
@@ -217,6 +220,35 @@ def check_level(state, buf, level, v, tol):
     else:
         S.residual = -1.0
     return LEVEL_ADVANCED if worst <= tol[0].feasibility_tol else LEVEL_VIOLATED
+
+
+@njit(cache=True)
+def row_violation(C, l, u, x, i):
+    """How far row ``i`` of ``l ≤ C x ≤ u`` is violated at ``x`` (≤ 0: it holds)."""
+    row = dot(C[i], x)
+    return max(l[i] - row, row - u[i])
+
+
+@njit(cache=True)
+def repair_bounds(x, lb, ub, inherited, level, slack):
+    """An answer ``x`` (rad/s) a little off its bounds, projected onto them in place (clipped to
+    ``[lb, ub]``); returns its worst violation of the hard rows (inherited and the level's own, joint space) at the
+    projected ``x`` and rewrites the soft rows' ``slack``.  Why: a bound row of a joint the free directions barely
+    move (``Z_i`` ~ 1e-6, a joint at its bound after level 1) makes the level's answer hinge on round-off: DAQP
+    met such a row to 3.4e-6 only, on one CPU and not on another (issue 31).  Clipping moves the joint by
+    less than ``bound_repair_tol``; the tool by ``J·δ`` — what a solver's tolerance on the bounds allows anyway."""
+    for i in range(x.shape[0]):
+        x[i] = min(max(x[i], lb[i]), ub[i])
+    worst = 0.0
+    for i in range(inherited.C.shape[0]):
+        worst = max(worst, row_violation(inherited.C, inherited.l, inherited.u, x, i))
+    for i in range(level.C.shape[0]):
+        violation = row_violation(level.C, level.l, level.u, x, i)
+        if i < level.n_slack:
+            slack[i] = max(violation, 0.0)
+        else:
+            worst = max(worst, violation)
+    return worst
 
 
 @njit(cache=True)

@@ -49,6 +49,8 @@ class QPSettings:
     damping_threshold: float = 1e-2  # ε, units of A (m/rad, rad/rad); 0 disables damping
     gradient_tol: float = 1e-7  # relative size of a projected gradient that a level owns
     feasibility_tol: float = 1e-6  # accepted violation of bounds / hard rows (units of the row)
+    bound_repair_tol: float = 1e-4  # rad/s: an answer off its bounds by at most this (hard rows within
+    # feasibility_tol) is projected onto them instead of refused (qpnso.qp.cascade_state.repair_bounds)
     active_tol: float = 1e-7  # a higher level's bound/row this close to its answer is active below
     line_fast_path: bool = True  # a full-rank (n−1)-row first task: its exact solutions form a line (qpnso.qp.line)
     active_set_fallback: bool = True  # a failed ProxQP solve is handed to DAQP (active set, exact)
@@ -72,6 +74,7 @@ class QPSettings:
             "damping_threshold",
             "gradient_tol",
             "feasibility_tol",
+            "bound_repair_tol",
             "active_tol",
         ):
             if getattr(self, name) < 0:
@@ -96,6 +99,7 @@ TOLERANCE_DTYPE = np.dtype(
         ("damping_threshold", np.float64),
         ("regularization", np.float64),
         ("feasibility_tol", np.float64),
+        ("bound_repair_tol", np.float64),
         ("gradient_tol", np.float64),
         ("active_tol", np.float64),
     ]
@@ -113,6 +117,7 @@ def tolerance_record(settings: QPSettings) -> np.ndarray:
         s.damping_threshold,
         s.regularization or 0.0,
         s.feasibility_tol,
+        s.bound_repair_tol,
         s.gradient_tol,
         s.active_tol,
     )

@@ -64,13 +64,20 @@ def test_braking_speed_is_the_discrete_braking_distance(a: float, dt: float) -> 
 
 
 def test_braking_speed_is_viable() -> None:
-    """One tick at the braking speed leaves a bound exactly ``a·dt`` lower: the next tick can always meet it."""
+    """One tick at the braking speed leaves a bound at least (on the braking branch: exactly) ``a·dt`` lower: the
+    next tick can always meet it."""
     a, dt = 10.0, 1e-3
     for d in np.geomspace(1.2 * a * dt * dt, 3.0, 40):  # (from the distance of one tick at a·dt on)
         v = braking_speed(d, a, dt)
-        assert braking_speed(d - v * dt, a, dt) == pytest.approx(v - a * dt, abs=1e-12)
+        after = braking_speed(d - v * dt, a, dt)
+        assert after >= v - a * dt - 1e-12
+        if v > 2 * a * dt:  # (the braking branch, not a speed that stops within one tick: exactly a·dt lower)
+            assert after == pytest.approx(v - a * dt, abs=1e-12)
     assert braking_speed(0.0, a, dt) == 0.0 and braking_speed(-1.0, a, dt) == 0.0
     assert braking_speed(1.0, 0.0, dt) == np.inf  # (no acceleration bound)
+    huge = 1e9  # (a bound that never binds: a joint may stop within a tick, so distance/dt, as with no bound)
+    for d in (1e-6, 0.01, 1.0):
+        assert braking_speed(d, huge, dt) >= d / dt
 
 
 def test_a_joint_at_full_speed_towards_its_limit_stops_before_it() -> None:
@@ -266,3 +273,25 @@ def test_the_panda_held_after_a_pull_does_not_chatter(strategy: str) -> None:
     assert reversals(dqs) == 0
     at_limit = np.any(np.abs(dqs[1000:]) >= panda.dq_max - 1e-9, axis=1).mean()
     assert at_limit < 0.01
+
+
+def test_an_answer_within_the_solvers_tolerance_is_clipped_to_the_bounds(lwr) -> None:
+    """Issue 31 item 6: DAQP answers accepted with bound violations of about 1e-6 rad/s let a joint cross its limit
+    by 4.2e-9 rad (Panda, dt 4 ms).  The solved q̇ is clipped to the problem's bounds before it is sent."""
+    from qpnso.control import tick
+
+    ctrl = Controller(lwr, ControllerConfig(strategy="qp", dt=4e-3))
+    q = lwr.sample_configuration()
+    q[3] = lwr.q_max[3] - 1e-7  # a joint a hair inside its upper limit: its upper bound is γ·1e-7 rad/s
+    ctrl.reset(q)
+    ctrl.step(q)
+    rec = ctrl.records
+    p = rec.problem[0]
+    x = 0.5 * (p["lb"] + p["ub"])
+    x[3] = p["ub"][3] + 1e-6  # (within the solver's feasibility tolerance)
+    rec.solution[0]["x"], rec.solution[0]["outcome"] = x, 0
+    tick.finish_tick(q, np.zeros(7), rec.tick)
+    dq = rec.command[0]["dq"]
+    assert dq[3] == p["ub"][3]
+    assert q[3] + ctrl.config.dt * dq[3] <= lwr.q_max[3]
+    np.testing.assert_array_equal(rec.command[0]["q_des"], q + ctrl.config.dt * dq)

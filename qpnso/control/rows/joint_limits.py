@@ -14,19 +14,24 @@ from qpnso.control.rows.damper import damper
 
 @njit(cache=True)
 def braking_speed(distance, ddq_max, dt):
-    """The largest speed (rad/s) towards a limit ``distance`` rad away from which a joint slowed by ``a·dt`` every
-    tick (a = ``ddq_max``) stops before the limit: ``v`` with ``v(v + a·dt)/(2a) = distance − a·dt²/8``.  From
-    ``v = K·a·dt`` the joint travels ``Σ_k (v − k·a·dt)·dt = v(v + a·dt)/(2a)`` exactly; from a speed between two
-    multiples, up to ``a·dt²/8`` more (the last partial step), hence the margin.  Viable: one tick at that speed
-    leaves ``braking_speed(distance − v·dt) = v − a·dt``, so slowing down at ``a`` always meets the next bound.
-    ``ddq_max`` ≤ 0: none (inf); a joint within ``a·dt²/8`` of the limit or past it: 0."""
+    """The largest speed (rad/s) towards a limit ``distance`` rad away from which a joint slowed by ``h = a·dt``
+    every tick (a = ``ddq_max``) stops before the limit: the larger of ``v`` with ``v(v + h)/(2a) = distance −
+    h·dt/8`` and ``min(h, distance/dt)``.  From ``v = K·h`` the joint travels ``Σ_k (v − k·h)·dt = v(v + h)/(2a)``
+    exactly; from a speed between two multiples, up to ``h·dt/8`` more (the last partial step), hence the margin;
+    from ``v ≤ h`` it stops after one tick of ``v·dt``.  Viable: one tick at the first speed leaves
+    ``braking_speed(distance − v·dt) ≥ v − h``, so slowing down at ``a`` always meets the next bound.
+    ``ddq_max`` ≤ 0: none (inf); a joint at or past the limit: 0."""
     if ddq_max <= 0.0:
         return math.inf
-    reach = distance - 0.125 * ddq_max * dt * dt
-    if reach <= 0.0:
+    if distance <= 0.0:
         return 0.0
-    half = 0.5 * ddq_max * dt
-    return math.sqrt(half * half + 2.0 * ddq_max * reach) - half
+    h = ddq_max * dt
+    one_tick = min(h, distance / dt)
+    reach = distance - 0.125 * h * dt
+    if reach <= 0.0:
+        return one_tick
+    half = 0.5 * h
+    return max(math.sqrt(half * half + 2.0 * ddq_max * reach) - half, one_tick)
 
 
 @njit(cache=True)

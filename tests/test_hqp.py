@@ -14,7 +14,7 @@ from scipy.optimize import linprog
 from qpnso.errors import InputError, SolverError
 from qpnso.qp import HierarchicalQP, Level, LevelStatus, QPSettings
 from qpnso.qp.cascade import level_parts
-from qpnso.qp.cascade_state import LEVEL_ADVANCED, LEVEL_VIOLATED, CascadeState, check_level
+from qpnso.qp.cascade_state import LEVEL_ADVANCED, LEVEL_VIOLATED, CascadeState, check_level, state_arrays
 from qpnso.qp.levels import _validate_level
 from qpnso.qp.settings import tolerance_record
 
@@ -627,8 +627,10 @@ print([k.__name__ for k, n in zip(kernels, loaded) if n == 0 or len(k.signatures
 @pytest.mark.parametrize("seed", range(6))
 def test_a_level_answer_is_judged_in_joint_space(seed, soft):
     """The check of a level's answer (``check_level`` kernel) against joint space, by NumPy: ``x = x_prev + Z z``;
-    accepted iff the joint bounds and the hard rows hold within ``feasibility_tol``; a soft row's slack is its
-    violation at x.  Answers perturbed across a bound or a row are refused, with their worst violation."""
+    accepted iff the joint bounds and the hard rows hold within ``feasibility_tol`` — or the bounds within
+    ``bound_repair_tol``, x then clipped onto them and the hard rows holding there; a soft row's slack is its
+    violation at the x accepted.  Answers perturbed across a bound or a row are refused, with their worst
+    violation."""
     levels, lb, ub = random_problem(seed)
     levels[1].C = np.vstack([levels[1].C, np.random.default_rng(seed).standard_normal((1, N))])
     levels[1].l, levels[1].u = np.r_[levels[1].l, -0.3], np.r_[levels[1].u, 0.3]
@@ -646,24 +648,35 @@ def test_a_level_answer_is_judged_in_joint_space(seed, soft):
     qp2, _ = state.build(parts[1])
     n_slack = qp2.g.shape[0] - Z.shape[1]
     rng = np.random.default_rng(seed)
-    tol = hqp.settings.feasibility_tol
-    outcomes = set()
+    tol, repair = hqp.settings.feasibility_tol, hqp.settings.bound_repair_tol
+    a = state_arrays(state.record[0], state.buffer)
+    lo, hi = a.lb.copy(), a.ub.copy()  # (the bounds level 2 inherits: level 1's answer passed down into them)
+    outcomes, repaired = set(), 0
     z_star = Z.T @ (res.x - x1)  # the cascade's own answer: feasible
-    for k in range(40):
-        z = z_star + (0.0 if k == 0 else rng.uniform(-5.0, 5.0, 1) * 10.0 ** -rng.integers(0, 4))
+    for k in range(60):
+        scale = 10.0 ** -rng.integers(0, 7)  # (down to 1e-6: within the repair tolerance of a bound)
+        z = z_star + (0.0 if k == 0 else rng.uniform(-5.0, 5.0, 1) * scale)
         v = np.r_[z, np.zeros(n_slack)]
         x = x1 + Z @ z
         rows = levels[1].C @ x
         violation = np.maximum(levels[1].l - rows, rows - levels[1].u)
-        feasible = bool(np.all(x >= lb - tol) and np.all(x <= ub + tol) and (soft or np.all(violation <= tol)))
+        off = max(np.max(lo - x), np.max(x - hi), 0.0)
+        worst = max(off, -np.inf if soft else np.max(violation))
+        accepted = x
+        if tol < worst <= repair:  # projected onto the bounds, the hard rows judged there
+            accepted = np.clip(x, lo, hi)
+            rows = levels[1].C @ accepted
+            violation = np.maximum(levels[1].l - rows, rows - levels[1].u)
+            worst = max(0.0, -np.inf if soft else np.max(violation))
+            repaired += 1
+        feasible = bool(worst <= tol)
         code = check_level(state.record, state.buffer, parts[1], v, state.tol)
         assert (code == LEVEL_ADVANCED) == feasible, (x, code)
         outcomes.add(feasible)
-        np.testing.assert_allclose(state.xk, x, atol=1e-12)
+        np.testing.assert_allclose(state.xk, accepted, atol=1e-12)
         if soft:
             np.testing.assert_allclose(state.slack[:n_slack], np.maximum(violation, 0.0), atol=1e-12)  # its violation
         if not feasible:
-            worst = max(np.max(lb - x), np.max(x - ub), -np.inf if soft else np.max(violation))
             assert code == LEVEL_VIOLATED and state.worst[0] == pytest.approx(worst, abs=1e-12)
     assert outcomes == {True, False}  # both kinds of answer were judged
 

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from qpnso.control.config import ControllerConfig, Status
 from qpnso.control.controller import Controller
 from qpnso.control.trajectory import Trajectory
-from qpnso.errors import InputError, QpnsoError, UnreachableError
+from qpnso.errors import InputError, QpnsoError, TrajectoryError, UnreachableError
 from qpnso.model.robot import Robot, robot_spec
 
 RESULT_KEYS = (
@@ -467,6 +467,7 @@ def solve_trajectory(
     n = int(np.floor(traj.duration / cfg.dt + 1e-9)) + 1
     times = traj.t[0] + np.arange(n) * cfg.dt
     positions, rotations, v, w = traj.samples(times)  # (the whole run's reference at once)
+    check_tool_speeds(traj, times, v, w, cfg)
     twists = np.concatenate([v, w], axis=1)
     state = ctrl.records.state
     tool = (state["R"][0], state["p"][0])  # views: the tool's pose at the tick's q, as the tick evaluated it
@@ -484,6 +485,23 @@ def solve_trajectory(
         result.first_obstacle = replace(result.first_obstacle, data_row=data_row(traj.t, result.first_obstacle.t))
         result.summary.update(result.first_obstacle.summary())
     return result
+
+
+def check_tool_speeds(traj: Trajectory, times: np.ndarray, v: np.ndarray, w: np.ndarray, cfg: ControllerConfig) -> None:
+    """:class:`TrajectoryError` naming the first tick (its time and data row) whose tool speed (m/s, rad/s; the
+    trajectory's own, ``v`` and ``w`` at ``times``) is beyond what the controller accepts
+    (``tool_speed_accepted``, ``tool_angular_speed_accepted``): a jump in the file, or mm for m, would
+    otherwise stop the run at that tick."""
+    linear, angular = np.linalg.norm(v, axis=1), np.linalg.norm(w, axis=1)
+    over = (linear > cfg.tool_speed_accepted) | (angular > cfg.tool_angular_speed_accepted)
+    if over.any():
+        k = int(np.argmax(over))
+        raise TrajectoryError(
+            f"the trajectory asks {linear[k]:.4g} m/s and {angular[k]:.4g} rad/s of the tool at t = {times[k]:.4g} s "
+            f"(data row {data_row(traj.t, float(times[k]))}), beyond the accepted {cfg.tool_speed_accepted:g} m/s "
+            f"and {cfg.tool_angular_speed_accepted:g} rad/s (tool_speed_accepted, tool_angular_speed_accepted): "
+            "a jump in the file, or positions not in metres?"
+        )
 
 
 def data_row(row_times: np.ndarray, t: float) -> int:

@@ -102,15 +102,17 @@ def test_a_hard_row_stops_the_elbow_on_its_floor(robot, monkeypatch) -> None:
 
     monkeypatch.setattr(ctrl.qp, "_solve_problem_levels", cascade)
     ctrl.reset(Q1)
-    q, heights = Q1.copy(), []
+    q, heights, limited = Q1.copy(), [], 0
     for _ in range(1500):
         cmd = ctrl.step(q)
-        assert cmd.ok and not cmd.status & Status.TOOL_LIMITED
+        assert cmd.ok and cmd.tool_error[0] < 1e-6
+        limited += bool(cmd.status & Status.TOOL_LIMITED)  # (the self-motion braking at ddq_max: a few ticks)
         q = cmd.q_des
         heights.append(elbow_z(robot, q))
+    assert limited <= 15  # (at the whole acceleration bound, 188 ticks and 1.3 mm: rows.kind.ROW_BRAKING_SHARE)
     assert min(heights) >= floor - 1e-6  # the damper: never through the floor (first order, γ·dt ≤ 1)
     assert heights[-1] == pytest.approx(floor, abs=1e-4)  # and resting on it
-    assert calls["cascade"] == 0  # the hard row folded into the line fast path's segment
+    assert calls["cascade"] <= limited  # the hard row folded into the line fast path's segment (but where it binds the tool)
     tool = robot.tool_pose(Q1)
     now = robot.tool_pose(q)
     assert np.linalg.norm(now.translation - tool.translation) < 1e-5  # the tool held

@@ -12,7 +12,8 @@ import qpnso
 from qpnso import Controller, ControllerConfig
 from qpnso.control.config import STRATEGIES, Status
 from qpnso.control.params import tick_params
-from qpnso.control.rows.joint_limits import acceleration_bounds, braking_speed, velocity_bounds
+from qpnso.control.rows.braking import braking_speed
+from qpnso.control.rows.joint_limits import acceleration_bounds, velocity_bounds
 from qpnso.qp.problem import STOPPED
 
 REVERSAL = 0.5  # rad/s: a joint whose command flips sign with more than this each way (the count)

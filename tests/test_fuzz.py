@@ -382,7 +382,9 @@ def test_the_pull_that_stopped_next_to_the_joint_bounds_leaves_the_tool_held(mon
     bounds, so the self-motion they held back starts at once (1.42 rad/s off the predicted command); the held
     tool then moved 1.14 µrad.  It holds now (the tick is solved again along its own q̇), and it does not when
     the first solve is kept."""
-    episode = FuzzConfig(seed=1, first_episode=129, ticks=600, strategies=("elbow-up",), compile="sync", **LWR_1MS)
+    episode = FuzzConfig(
+        seed=1, first_episode=129, ticks=600, strategies=("elbow-up",), compile="sync", ddq_max=1e9, **LWR_1MS
+    )  # (no acceleration bound: alone it keeps the held tool here since issue 31)
     report = run_fuzz(episode)
     assert report.counts["drift"] == 0 and report.drift_checked > 500
     without_second_pass(monkeypatch)

@@ -4,34 +4,11 @@ command's change from one tick to the next (the joint acceleration limit ``ddq_m
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
+from qpnso.control.rows.braking import braking_speed
 from qpnso.control.rows.damper import damper
-
-
-@njit(cache=True)
-def braking_speed(distance, ddq_max, dt):
-    """The largest speed (rad/s) towards a limit ``distance`` rad away from which a joint slowed by ``h = a·dt``
-    every tick (a = ``ddq_max``) stops before the limit: the larger of ``v`` with ``v(v + h)/(2a) = distance −
-    h·dt/8`` and ``min(h, distance/dt)``.  From ``v = K·h`` the joint travels ``Σ_k (v − k·h)·dt = v(v + h)/(2a)``
-    exactly; from a speed between two multiples, up to ``h·dt/8`` more (the last partial step), hence the margin;
-    from ``v ≤ h`` it stops after one tick of ``v·dt``.  Viable: one tick at the first speed leaves
-    ``braking_speed(distance − v·dt) ≥ v − h``, so slowing down at ``a`` always meets the next bound.
-    ``ddq_max`` ≤ 0: none (inf); a joint at or past the limit: 0."""
-    if ddq_max <= 0.0:
-        return math.inf
-    if distance <= 0.0:
-        return 0.0
-    h = ddq_max * dt
-    one_tick = min(h, distance / dt)
-    reach = distance - 0.125 * h * dt
-    if reach <= 0.0:
-        return one_tick
-    half = 0.5 * h
-    return max(math.sqrt(half * half + 2.0 * ddq_max * reach) - half, one_tick)
 
 
 @njit(cache=True)

@@ -11,7 +11,6 @@ path folds it into its segment; a soft row is level 2's, with the elbow rows' sl
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -19,9 +18,8 @@ import casadi as ca
 import numpy as np
 from numba import njit
 
+from qpnso.control.rows.braking import row_braking, self_motion_acceleration
 from qpnso.control.rows.damper import damper
-from qpnso.control.rows.joint_limits import braking_speed
-from qpnso.linalg import dot, least_norm_line
 
 
 @dataclass(frozen=True)
@@ -58,41 +56,6 @@ def row_counts(rows: Sequence[RowKind], robot) -> tuple[int, int, int, int]:
     hard = sum(np.size(kind.bounds(robot)[0]) for kind in rows if not kind.soft)
     soft = sum(np.size(kind.bounds(robot)[0]) for kind in rows if kind.soft)
     return hard, soft, max(hard, ROOM), max(soft, ROOM)
-
-
-ROW_BRAKING_SHARE = 0.5
-"""The share of the self-motion's acceleration bound a row brakes with: the rest is left to the tool's own
-changes of speed and to the row's direction turning as the arm moves (braking at the whole bound, a hard elbow
-floor made the tool give way on 188 of 1500 ticks, by up to 1.3 mm; tests/test_rows.py)."""
-
-
-@njit(cache=True)
-def self_motion_acceleration(J, P):
-    """``(d, s̈_max)``: the unit self-motion direction ``d`` (``J d = 0``, the tool's 6×7 Jacobian) and the largest
-    rate (1/s²) at which the joints can change their speed along it, ``min_i ddq_max_i/|d_i|``: what a row can
-    use to brake while the tool is held.  ``s̈_max`` 0 when ``J`` is singular (no single direction) or a joint
-    has no acceleration bound (then rows are not braked)."""
-    d = least_norm_line(J, np.zeros(J.shape[0]))[1]
-    rate = math.inf
-    for i in range(d.shape[0]):
-        if P.ddq_max[i] <= 0.0:
-            return d, 0.0
-        if abs(d[i]) > 1e-12:
-            rate = min(rate, P.ddq_max[i] / abs(d[i]))
-    return d, rate if math.isfinite(rate) else 0.0
-
-
-@njit(cache=True)
-def row_braking(h, gradient, h_lo, h_hi, lo, hi, d, rate, dt):
-    """A row's rate bounds ``(lo, hi)`` narrowed to the braking speed
-    (:func:`~qpnso.control.rows.joint_limits.braking_speed`) of its distance to each bound, at the row's
-    acceleration along the self-motion, :data:`ROW_BRAKING_SHARE` of ``|∇h·d|·s̈_max``
-    (:func:`self_motion_acceleration`): a held tool's arm
-    slows a row down only through its self-motion.  ``rate`` 0 or a row the self-motion does not move: unchanged."""
-    a = ROW_BRAKING_SHARE * abs(dot(gradient, d)) * rate
-    if a <= 0.0:
-        return lo, hi
-    return max(lo, -braking_speed(h - h_lo, a, dt)), min(hi, braking_speed(h_hi - h, a, dt))
 
 
 @njit(cache=True)

@@ -71,11 +71,13 @@ class TickChecker:
         timed: bool = True,
         cpu_time: float = math.inf,
         solver_cpu_time: float = math.inf,
+        history: "CommandHistory | None" = None,
     ) -> bool:
         """Check one command given at ``q`` (rad): finite, velocity, joint limits, torque, solver time
         (``cpu_time``, s: the CPU time of the whole ``step`` call, shown; ``solver_cpu_time`` the solver's, from
         :class:`SolverClock`: a tick over ``solve_time_max`` in wall time but not in the solver's CPU time
-        was preempted).  Returns whether ``dq`` is finite (the plant can apply it)."""
+        was preempted; ``history`` the controller's previous commands, for a joint outside its limit that may still
+        move out while it brakes at ``ddq_max``).  Returns whether ``dq`` is finite (the plant can apply it)."""
         rep, cfg = self.report, self.config
         dq = np.asarray(cmd.dq, dtype=float)
         q_des = np.asarray(cmd.q_des, dtype=float)
@@ -111,8 +113,9 @@ class TickChecker:
             )
             return False
         self._magnitude("velocity", "dq", "rad/s", dq, self.dq_max, self.config.joint_tol, cmd, where, inputs)
-        if not self._limits(q, q + self.dt * dq, "q + dt·dq", cmd, where, inputs):
-            self._limits(q, q_des, "q_des", cmd, where, inputs)  # one count per command
+        braking = braking_joints(dq, history)
+        if not self._limits(q, q + self.dt * dq, "q + dt·dq", cmd, where, inputs, braking):
+            self._limits(q, q_des, "q_des", cmd, where, inputs, braking)  # one count per command
         self._magnitude("torque", "tau", "N·m", tau, self.tau_limit, self.config.torque_tol, cmd, where, inputs)
         return True
 
@@ -141,11 +144,18 @@ class TickChecker:
                 f"{over[j]:.3g}); status {cmd.status}",
             )
 
-    def _limits(self, q: np.ndarray, q_next: np.ndarray, what: str, cmd: Command, where: Where, inputs: dict) -> bool:
-        """A joint crosses a limit (inside at ``q``) or moves further out (outside at ``q``)."""
+    def _limits(
+        self, q: np.ndarray, q_next: np.ndarray, what: str, cmd: Command, where: Where, inputs: dict, braking=None
+    ) -> bool:
+        """A joint crosses a limit (inside at ``q``) or moves further out (outside at ``q``) — unless it is outside
+        and ``braking`` (:func:`braking_joints`): slowing down at its acceleration bound, the most a command's
+        bounded change allows (a joint measured past its limit while moving out cannot stop in one tick)."""
         low = np.minimum(q, self.q_min) - q_next
         high = q_next - np.maximum(q, self.q_max)
         over = np.maximum(low, high)
+        if braking is not None:
+            outside = (q < self.q_min) | (q > self.q_max)
+            over = np.where(outside & braking, -np.inf, over)
         j = int(np.argmax(over))
         if over[j] <= self.config.joint_tol:
             return False
@@ -299,6 +309,17 @@ class TickChecker:
             step = jac.T @ np.linalg.solve(jac @ jac.T + 1e-4 * np.eye(6), e)
             q = np.clip(q + step, self.q_min, self.q_max)
         return False
+
+
+def braking_joints(dq: np.ndarray, history: "CommandHistory | None") -> np.ndarray | None:
+    """Per joint, whether the command ``dq`` (rad/s) slows the joint down from the previous command by the whole
+    ``ddq_max·dt`` (1e-9 relative) without reversing, or stops it: the most the acceleration bound allows.  None
+    without a previous command or an acceleration bound."""
+    if history is None or history.ddq_max is None or not history.recent:
+        return None
+    previous = history.recent[-1]
+    slowest = np.maximum(np.abs(previous) - np.asarray(history.ddq_max) * history.dt, 0.0)
+    return (np.abs(dq) <= slowest * (1.0 + 1e-9) + 1e-12) & (dq * previous >= 0.0)
 
 
 @dataclass

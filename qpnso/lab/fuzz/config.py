@@ -94,6 +94,7 @@ class FuzzConfig:
     setup: str | None = None  # "module:function" called first in every fresh process (a tracer, a test's fault)
     max_replayed_episodes: int = 40  # the slowest ticks' episodes replayed (the rest counted, not replayed)
     solver_time_budget: float | None = None  # s: every controller's ControllerConfig.solver_time_budget
+    ddq_max: float | None = None  # rad/s²: every controller's ControllerConfig.ddq_max (None: the robot's)
     # thresholds of the checks
     joint_tol: float = 1e-9  # rad, rad/s
     torque_tol: float = 1e-9  # N·m

@@ -207,7 +207,9 @@ class Episode:
         if cmd is not None and cmd.status & Status.QP_DEADLINE:
             self.report.deadline_ticks += 1
         self._timed(cmd, cpu, solver_cpu, inputs)
-        finite = cmd is not None and chk.command(cmd, self.q, where, inputs, cpu_time=cpu, solver_cpu_time=solver_cpu)
+        finite = cmd is not None and chk.command(
+            cmd, self.q, where, inputs, cpu_time=cpu, solver_cpu_time=solver_cpu, history=self.history
+        )
         if cmd is not None and finite:
             chk.motion(self.history, np.asarray(cmd.dq, dtype=float), cmd, where, inputs)
         else:  # no command the plant can apply: the next one has none to be compared with

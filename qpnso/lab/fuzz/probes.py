@@ -172,6 +172,7 @@ def send_probe(
                 timed=False,
                 cpu_time=cpu,
                 solver_cpu_time=math.inf if clock is None else clock.take(),
+                history=history,
             )
         dq = np.asarray(cmd.dq, dtype=float)
         if history is not None and dq.shape == (checker.robot.nq,) and np.all(np.isfinite(dq)):

@@ -77,7 +77,11 @@ class Fuzzer:
             ctrl = Controller(
                 self.robot(robot),
                 ControllerConfig(
-                    dt=dt, strategy=strategy, compile=cfg.compile, solver_time_budget=cfg.solver_time_budget
+                    dt=dt,
+                    strategy=strategy,
+                    compile=cfg.compile,
+                    solver_time_budget=cfg.solver_time_budget,
+                    ddq_max=cfg.ddq_max,
                 ),
             )
             ctrl.cost.wait_compiled()

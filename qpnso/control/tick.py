@@ -375,7 +375,7 @@ def begin_tick(q, twist, tick, follow):
     pb.A1[:] = s.J
     pb.b1[:] = level1_target(twist, e, P, s.drift)
     pb.lb[:], pb.ub[:] = velocity_bounds(q, P)
-    acceleration_bounds(pb.lb, pb.ub, m.dq_prev, P)
+    acceleration_bounds(pb.lb, pb.ub, m.dq_prev, q, P)
     pb.has_level2, pb.n_hard, pb.n_soft = 0, 0, 0
     add_rows(pb, s, P)  # the row kinds' rows (qpnso.control.rows)
     obstacle_rows(pb, s, P, r, m)  # the keep-out rows (qpnso.control.rows.obstacles)

@@ -4,6 +4,8 @@ command's change from one tick to the next (the joint acceleration limit ``ddq_m
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -38,31 +40,43 @@ def velocity_bounds(q, P):
 
 
 @njit(cache=True)
-def acceleration_bounds(lb, ub, dq_prev, P):
-    """The bounds ``lb ≤ q̇ ≤ ub`` (rad/s) narrowed, in place, to the box ``dq_prev ± ddq_max·dt`` around the
+def change_box(q, dq_prev, i, P):
+    """``(lo, hi)`` (rad/s): the speeds joint ``i`` may take this tick, ``dq_prev ± ddq_max·dt`` around its previous
+    command — widened to reach 0 at once when the joint is measured past a limit and moving out (an external
+    push or an overshoot: the limit before the bound; it then stops moving out at once, and turns back at
+    ``ddq_max``).  ``ddq_max`` ≤ 0: no bound (±inf)."""
+    step = P.ddq_max[i] * P.dt
+    if step <= 0.0:
+        return -math.inf, math.inf
+    lo, hi = dq_prev - step, dq_prev + step
+    if q > P.q_max[i]:
+        lo = min(lo, 0.0)
+    elif q < P.q_min[i]:
+        hi = max(hi, 0.0)
+    return lo, hi
+
+
+@njit(cache=True)
+def acceleration_bounds(lb, ub, dq_prev, q, P):
+    """The bounds ``lb ≤ q̇ ≤ ub`` (rad/s) narrowed, in place, to each joint's :func:`change_box` around the
     previous command: where they meet, their intersection; where they do not (a joint to be pushed back faster
-    than it can change speed), the point of the box nearest them — the command's change is bounded first
-    (``P.ddq_max`` ≤ 0 on a joint: no bound there)."""
+    than it can change speed), the point of the box nearest them — the command's change is bounded first."""
     for i in range(lb.shape[0]):
-        step = P.ddq_max[i] * P.dt
-        if step > 0.0:
-            lo, hi = dq_prev[i] - step, dq_prev[i] + step
-            lb[i] = min(max(lb[i], lo), hi)
-            ub[i] = max(min(ub[i], hi), lo)
+        lo, hi = change_box(q[i], dq_prev[i], i, P)
+        lb[i] = min(max(lb[i], lo), hi)
+        ub[i] = max(min(ub[i], hi), lo)
 
 
 @njit(cache=True)
 def bounded_change(q, c, dq_prev, P):
-    """The command record ``c``'s ``dq`` (rad/s) moved, in place, into ``dq_prev ± ddq_max·dt`` and ``±dq_max``,
-    ``q_des = q + dt·dq`` following: every command, a fallback's or a stop's too, changes each joint's speed by
-    at most ``ddq_max·dt`` per tick (a stop then slows the joints down at ``ddq_max``).  Returns whether it
-    moved an entry."""
+    """The command record ``c``'s ``dq`` (rad/s) moved, in place, into each joint's :func:`change_box` and
+    ``±dq_max``, ``q_des = q + dt·dq`` following: every command, a fallback's or a stop's too, changes each
+    joint's speed by at most ``ddq_max·dt`` per tick (a stop then slows the joints down at ``ddq_max``), but for
+    a joint past its limit stopping its way out.  Returns whether it moved an entry."""
     moved = False
     for i in range(q.shape[0]):
-        step = P.ddq_max[i] * P.dt
-        v = c.dq[i]
-        if step > 0.0:
-            v = min(max(v, dq_prev[i] - step), dq_prev[i] + step)
+        lo, hi = change_box(q[i], dq_prev[i], i, P)
+        v = min(max(c.dq[i], lo), hi)
         v = min(max(v, -P.dq_max[i]), P.dq_max[i])
         if v != c.dq[i]:
             c.dq[i] = v

@@ -187,26 +187,40 @@ class TickChecker:
             self.report.kernels_added[signature] = self.report.kernels_added.get(signature, 0) + 1
 
     # -------------------------------------------------- command to command
-    def motion(self, history: CommandHistory, dq: np.ndarray, cmd: Command, where: Where, inputs: dict) -> None:
-        """The controller's new command ``dq`` (rad/s) against its previous ones since its reset (``history``,
-        which then takes ``dq``): a joint's change beyond ``ddq_max·dt`` (when the controller has a ``ddq_max``)
-        and a joint reversed from beyond ``reversal_speed`` one way to beyond it the other way within
-        ``reversal_ticks`` ticks (counted on the tick it arrives, once per tick)."""
+    def motion(self, history: CommandHistory, dq: np.ndarray, cmd: Command, where: Where, inputs: dict, q=None) -> None:
+        """The controller's new command ``dq`` (rad/s) given at ``q`` (rad) against its previous ones since its
+        reset (``history``, which then takes ``dq``): a joint's change beyond ``ddq_max·dt`` (when the controller
+        has a ``ddq_max``; a joint measured past a limit may also stop its way out at once) and a joint reversed
+        from beyond ``reversal_speed`` one way to beyond it the other way within ``reversal_ticks`` ticks (counted
+        on the tick it arrives, once per tick)."""
         recent = history.recent
         if recent:
             if history.ddq_max is None:
                 self.report.accel_unbounded += 1
             else:
-                self._accel_bound(dq - recent[-1], history, cmd, where, inputs)
+                self._accel_bound(dq - recent[-1], history, cmd, where, inputs, self._stops_out(q, dq, recent[-1]))
             self._reversal(dq, recent, cmd, where, inputs)
         history.push(dq)
 
-    def _accel_bound(self, step: np.ndarray, history: CommandHistory, cmd: Command, where: Where, inputs: dict) -> None:
+    def _stops_out(self, q, dq: np.ndarray, previous: np.ndarray) -> np.ndarray:
+        """Per joint: measured past a limit (at ``q``) and its command slowed from ``previous`` towards zero without
+        passing it (stopping its way out at once, which the bound allows there); all False without ``q``."""
+        if q is None:
+            return np.zeros(dq.shape, dtype=bool)
+        q = np.asarray(q, dtype=float)
+        out = (q > self.q_max) & (previous > 0.0) | (q < self.q_min) & (previous < 0.0)
+        return out & (dq * previous >= 0.0) & (np.abs(dq) <= np.abs(previous))
+
+    def _accel_bound(
+        self, step: np.ndarray, history: CommandHistory, cmd: Command, where: Where, inputs: dict, excused=None
+    ) -> None:
         cfg = self.config
         self.report.accel_checked += 1
         ddq_max = np.asarray(history.ddq_max, dtype=float)
         bound = ddq_max * history.dt
         over = np.abs(step) - (bound * (1.0 + cfg.accel_rtol) + cfg.accel_atol)
+        if excused is not None:
+            over = np.where(excused, -np.inf, over)
         j = int(np.argmax(over))
         if over[j] > 0.0:
             self.report.record(

@@ -211,7 +211,7 @@ class Episode:
             cmd, self.q, where, inputs, cpu_time=cpu, solver_cpu_time=solver_cpu, history=self.history
         )
         if cmd is not None and finite:
-            chk.motion(self.history, np.asarray(cmd.dq, dtype=float), cmd, where, inputs)
+            chk.motion(self.history, np.asarray(cmd.dq, dtype=float), cmd, where, inputs, q=self.q)
         else:  # no command the plant can apply: the next one has none to be compared with
             self.history.reset()
         self.failures_in_row = 0 if finite else self.failures_in_row + 1

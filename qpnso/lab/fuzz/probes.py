@@ -176,6 +176,6 @@ def send_probe(
             )
         dq = np.asarray(cmd.dq, dtype=float)
         if history is not None and dq.shape == (checker.robot.nq,) and np.all(np.isfinite(dq)):
-            checker.motion(history, dq, cmd, where, inputs)
+            checker.motion(history, dq, cmd, where, inputs, q=probe.q)
     rep.count_probe(probe.kind, outcome)
     return outcome

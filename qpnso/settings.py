@@ -109,7 +109,7 @@ def keywords_checked(cls: type) -> type:
     """Class decorator (under ``@dataclass``): an unknown keyword given to ``cls(...)`` raises the
     :class:`SettingError` that :func:`from_dict` gives for an unknown key (the valid keys listed), instead of
     Python's ``TypeError``."""
-    init = cls.__init__
+    init = vars(cls)["__init__"]  # (the dataclass's own, from the class dict)
 
     @functools.wraps(init)
     def checked_init(self: Any, *args: Any, **kwargs: Any) -> None:

@@ -320,3 +320,27 @@ def test_a_joint_pushed_past_its_limit_while_moving_out_stops_its_way_out_at_onc
     assert cmd.status & Status.Q_OUT_OF_LIMITS
     assert cmd.dq[j] * moving <= 0.0  # (not further out)
     assert abs(cmd.dq[j]) <= ctrl.ddq_max[j] * ctrl.config.dt * (1 + 1e-12)  # (and no faster back than the bound)
+
+
+def test_the_pose_correction_asks_no_more_than_the_tool_can_stop_from(lwr) -> None:
+    """K_p·e asks a deceleration of K_p times the speed; with the command's change bounded the orientation
+    overshot its reference and swung back while the position error grew (the fuzz, seed 1 episode 149: 4.5 cm
+    not closed 100 ticks after a 2 m/s pull).  Each part of the correction is at most the braking speed of its
+    error at the tool's deceleration (params.tool_braking)."""
+    from qpnso.control.params import tick_params, tool_braking
+    from qpnso.control.tick import pose_correction
+    from qpnso.lab.fuzz import FuzzConfig, run_fuzz
+
+    P = tick_params(lwr, ControllerConfig())[0]
+    linear, angular = tool_braking(lwr.ddq_max)
+    e = np.array([0.04, 0.0, 0.0, 0.0, 0.0122, 0.0])
+    out = pose_correction(e, P)
+    assert np.linalg.norm(out[3:]) == pytest.approx(braking_speed(0.0122, angular, P["dt"]), rel=1e-12)
+    assert np.linalg.norm(out[3:]) < 0.5 * ControllerConfig().pose_correction_angular_speed
+    assert np.linalg.norm(out[:3]) == pytest.approx(ControllerConfig().pose_correction_speed)  # (far: the cap)
+    tiny = np.full(6, 1e-7)
+    np.testing.assert_allclose(pose_correction(tiny, P), ControllerConfig().pose_gain * tiny)  # (a held tool: K_p·e)
+    report = run_fuzz(
+        FuzzConfig(seed=1, first_episode=149, ticks=600, robots=("lwr4p",), dts=(1e-3,), strategies=("rom",))
+    )
+    assert report.counts["recovery"] == 0

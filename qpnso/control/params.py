@@ -73,6 +73,21 @@ _VECTORS = (
 )
 
 
+TOOL_BRAKING_LEVER = 0.2
+"""m: the lever from the joints to the tool point taken for the tool's linear braking (``tool_braking``): the
+joints' acceleration bound times this, halved, is the linear deceleration the pose correction counts on (an
+assumption: about the wrist-to-tool distance; a longer lever can decelerate faster)."""
+
+
+def tool_braking(ddq_max: np.ndarray) -> np.ndarray:
+    """``(linear m/s², angular rad/s²)``: the deceleration the pose correction counts on
+    (:func:`qpnso.control.tick.pose_correction`), half of the slowest joint's acceleration bound (the other half
+    left to the self-motion and the twist), times :data:`TOOL_BRAKING_LEVER` for the linear part; 0 (no braking)
+    when a joint has no bound."""
+    slowest = float(np.min(ddq_max)) if np.all(ddq_max > 0) else 0.0
+    return np.array([0.5 * slowest * TOOL_BRAKING_LEVER, 0.5 * slowest])
+
+
 def params_dtype(n: int, rows: int = 0, points: int = 0, capsules: int = 0, obstacles: int = 0) -> np.dtype:
     """The record type of :func:`tick_params` for ``n`` joints, ``rows`` rows of row kinds, the collision
     capsules' ``points`` chain points and ``capsules``, and room for ``obstacles`` keep-out volumes."""
@@ -82,7 +97,7 @@ def params_dtype(n: int, rows: int = 0, points: int = 0, capsules: int = 0, obst
         [(name, np.float64) for name in _SCALARS]
         + [(name, np.float64, n) for name in _VECTORS]
         + row_fields
-        + [("n_rows", np.int64), ("srs", srs_dtype())]
+        + [("n_rows", np.int64), ("srs", srs_dtype()), ("tool_braking", np.float64, 2)]
         + [("geo", keep_out_dtype(points, capsules, obstacles))]
     )
 
@@ -159,6 +174,7 @@ def tick_params(
             field[: np.size(value)] = value  # (the rows first; the room after them unused)
         else:
             params[name] = value
+    params["tool_braking"] = tool_braking(np.asarray(values["ddq_max"]))
     if closed_form:
         params["srs"] = srs_geometry(robot).record  # the arm's geometry for the tick's interval kernel
     if capsules is not None:

@@ -423,7 +423,7 @@ class Controller:
 
     def _second_pass(self, qv: np.ndarray, dq_meas: np.ndarray) -> tuple[str, int, float]:
         """Level 1's second-order term ``½dt·J̇q̇`` taken again along the solved ``q̇`` (the tick's first solve was
-        farther than :data:`~qpnso.control.state.PREDICTION_TOLERANCE` from the predicted ``q̇``: a null-space
+        farther than :func:`~qpnso.control.state.prediction_tolerance` from the predicted ``q̇``: a null-space
         step the prediction could not see, e.g. level 1 leaving the joint bounds when a pull stops), then the
         tick's problem solved and finished again (same level 2).  Returns the solve's failure (or ""), the
         status bits and the solve's wall time (s).  The state is evaluated along ``q̇`` (with no change of

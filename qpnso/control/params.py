@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from qpnso.control.rows import RowKind
+from qpnso.control.state import prediction_tolerance
 from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.elbow.clearance import KeepOut, keep_out_dtype, keep_out_record
 from qpnso.elbow.closed_form import srs_dtype
@@ -57,6 +58,7 @@ _SCALARS = (
     "interval_period",  # ticks between continuity-interval updates while the tool moves
     "closed_form_interval",  # 1: the tick renews the continuity interval itself (srs, closed form); 0: Python does
     "tool_moved_tol",  # TOOL_MOVED_TOL
+    "prediction_tolerance",  # rad/s: a solved q̇ this far from the predicted one is solved again (state.py)
     "tool_speed_accepted",  # m/s: a faster tool twist is refused (tick.twist_status)
     "tool_angular_speed_accepted",  # rad/s
 )
@@ -144,6 +146,7 @@ def tick_params(
         elbow_offset_min=ELBOW_OFFSET_MIN_M,
         interval_period=cfg.interval_period,
         tool_moved_tol=TOOL_MOVED_TOL,
+        prediction_tolerance=prediction_tolerance(cfg.dt),
         tool_speed_accepted=cfg.tool_speed_accepted,
         tool_angular_speed_accepted=cfg.tool_angular_speed_accepted,
         q_check_lo=robot.q_min - Q_CHECK_WIDENING,

@@ -224,11 +224,18 @@ tool part stays within ``|v|/(2ε)`` rad/s (the hierarchical QP's default dampin
 
 
 PREDICTION_TOLERANCE = 0.05
-"""rad/s: a solved ``q̇`` farther than this from the predicted one (any joint) has level 1's second-order term
-taken along the wrong velocity; the controller then takes it along the solved ``q̇`` and solves again
-(:meth:`qpnso.control.controller.Controller._second_pass`).  The term's error is about ``½dt²·|J̇|·|Δq̇|``: 1.3 µrad
-for the 1.42 rad/s miss at the end of a 2 m/s pull (the fuzz, seed 1, episode 129), under 0.1 µrad at this
-tolerance."""
+"""rad/s at dt = 1 ms: a solved ``q̇`` farther than this from the predicted one (any joint) has level 1's
+second-order term taken along the wrong velocity; the controller then takes it along the solved ``q̇`` and solves
+again (:meth:`qpnso.control.controller.Controller._second_pass`).  The term's error is about
+``½dt²·|J̇|·|Δq̇|``: 1.3 µrad for the 1.42 rad/s miss at the end of a 2 m/s pull (the fuzz, seed 1, episode 129),
+under 0.1 µrad at this tolerance.  It grows as dt², so the tolerance a controller uses is this times
+``(1 ms/dt)²`` (:func:`prediction_tolerance`): at 4 ms a 0.049 rad/s miss drifted a held Panda tool by 1.11 µrad
+(the 10⁶-tick fuzz of issue 31, seed 1 episode 393)."""
+
+
+def prediction_tolerance(dt: float) -> float:
+    """rad/s: :data:`PREDICTION_TOLERANCE` for a tick of ``dt`` s, scaled by ``(1 ms/dt)²`` (the same drift)."""
+    return PREDICTION_TOLERANCE * (1e-3 / dt) ** 2
 
 
 def predicted_velocity(J: ca.SX, dq: ca.SX, twist: ca.SX, twist_prev: ca.SX) -> ca.SX:

@@ -54,7 +54,7 @@ from qpnso.control.rows.elbow import elbow_row
 from qpnso.control.rows.joint_limits import acceleration_bounds, bounded_change, velocity_bounds
 from qpnso.control.rows.kind import add_rows
 from qpnso.control.rows.obstacles import keep_out_torque, obstacle_bits, obstacle_rows, soft_violation
-from qpnso.control.state import PREDICTION_TOLERANCE, sanitize_state, state_dtype
+from qpnso.control.state import sanitize_state, state_dtype
 from qpnso.linalg import dot, dynamically_consistent_projection, matmul, nullspace_part
 from qpnso.qp.problem import SOLVED, STOPPED, problem_dtype, solution_dtype
 
@@ -433,12 +433,12 @@ def qp_level2(tick):
 
 
 @njit(cache=True)
-def prediction_missed(dq, predicted):
-    """Whether a joint of the solved ``dq`` is farther than :data:`~qpnso.control.state.PREDICTION_TOLERANCE`
-    (rad/s) from the ``predicted`` velocity level 1's second-order term was taken along (no temporary array:
-    every tick asks)."""
+def prediction_missed(dq, predicted, tolerance):
+    """Whether a joint of the solved ``dq`` is farther than ``tolerance`` (rad/s; the tick's
+    :func:`~qpnso.control.state.prediction_tolerance`) from the ``predicted`` velocity level 1's second-order
+    term was taken along (no temporary array: every tick asks)."""
     for i in range(dq.shape[0]):
-        if abs(dq[i] - predicted[i]) > PREDICTION_TOLERANCE:
+        if abs(dq[i] - predicted[i]) > tolerance:
             return True
     return False
 
@@ -451,7 +451,7 @@ def finish_tick(q, dq_meas, tick):
     law in its command, against the measured ``dq_meas``), written into its command; then every tick's last
     step (:func:`finish_command`).  Returns the status bits: the report's, :func:`answer_bits` of a solved QP
     and the finishing ones, and :data:`~qpnso.control.flags.PREDICTION_MISSED` (internal) when the solved
-    ``q̇`` of a tool that is not limited is farther than :data:`~qpnso.control.state.PREDICTION_TOLERANCE` from
+    ``q̇`` of a tool that is not limited is farther than :func:`~qpnso.control.state.prediction_tolerance` from
     the one level 1's second-order term was taken along (a limited tool is off its reference anyway)."""
     t = tick[0]
     s, P, S, r, c, pb = t.state, t.params, t.solution, t.report, t.command, t.problem
@@ -468,7 +468,7 @@ def finish_tick(q, dq_meas, tick):
     bits = r.bits
     if S.outcome == SOLVED:
         bits |= answer_bits(S.tool_residual, soft_violation(t.problem, dq, r.obstacle_first, r.obstacle_rows))
-        if not bits & FLAG_TOOL_LIMITED and prediction_missed(S.x, s.predicted):
+        if not bits & FLAG_TOOL_LIMITED and prediction_missed(S.x, s.predicted, P.prediction_tolerance):
             bits |= PREDICTION_MISSED
     bits |= obstacle_bits(pb, dq, r, P) | finish_command(q, c, s.g, P, r)
     bounded_change(q, c, t.memory.dq_prev, P)  # (a command replaced by the stop command: reached at ddq_max)

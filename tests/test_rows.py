@@ -109,7 +109,7 @@ def test_a_hard_row_stops_the_elbow_on_its_floor(robot, monkeypatch) -> None:
         limited += bool(cmd.status & Status.TOOL_LIMITED)  # (the self-motion braking at ddq_max: a few ticks)
         q = cmd.q_des
         heights.append(elbow_z(robot, q))
-    assert limited <= 15  # (at the whole acceleration bound, 188 ticks and 1.3 mm: rows.kind.ROW_BRAKING_SHARE)
+    assert limited <= 15  # (at the whole acceleration bound, 188 ticks and 1.3 mm: rows.braking.BRAKING_SHARE)
     assert min(heights) >= floor - 1e-6  # the damper: never through the floor (first order, γ·dt ≤ 1)
     assert heights[-1] == pytest.approx(floor, abs=1e-4)  # and resting on it
     assert calls["cascade"] <= limited  # the hard row folded into the line fast path's segment (but where it binds)

@@ -43,7 +43,7 @@ from qpnso.control.flags import (
     PREDICTION_MISSED,
 )
 from qpnso.control.memory import KEEP_OUT_ROWS, interval_failed, new_memory, store_interval
-from qpnso.control.params import acceleration_limits, interval_in_tick, tick_params
+from qpnso.control.params import interval_in_tick, tick_params
 from qpnso.control.rows import RowKind
 from qpnso.control.rows.kind import row_counts
 from qpnso.control.state import StateEvaluator, sanitize_state
@@ -142,7 +142,6 @@ class Controller:
         self.config = config or ControllerConfig()
         cfg = self.config
         self.rows = checked_rows(rows, robot, cfg.dt)
-        self.ddq_max = acceleration_limits(robot, cfg)  # rad/s²: |Δq̇| ≤ ddq_max·dt per tick, every command
         self.cost = CostModel(robot, cfg.weights, cfg.potential_speed, cfg.potential_angular_speed, compile=cfg.compile)
         _, _, self._hard_room, self._soft_room = row_counts(self.rows, robot)
         room = self._hard_room + self._soft_room
@@ -322,6 +321,12 @@ class Controller:
         self._placed = None
         if self.capsules is not None:
             still_obstacles(self.records.params["geo"])
+
+    @property
+    def ddq_max(self) -> np.ndarray:
+        """The joint acceleration bounds (rad/s², a copy): every command changes each joint's speed by at most
+        ``ddq_max·dt`` from the previous tick's (``ControllerConfig.ddq_max``, else ``Robot.ddq_max``)."""
+        return self.records.params[0]["ddq_max"].copy()
 
     @property
     def ns0(self) -> float:

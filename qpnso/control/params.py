@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from qpnso.control.rows import RowKind
+from qpnso.control.rows.braking import BRAKING_SHARE
 from qpnso.control.state import prediction_tolerance
 from qpnso.elbow.arm_angle import ELBOW_OFFSET_MIN_M, WRIST_CONE_DEG
 from qpnso.elbow.clearance import KeepOut, keep_out_dtype, keep_out_record
@@ -83,11 +84,11 @@ assumption: about the wrist-to-tool distance; a longer lever can decelerate fast
 
 def tool_braking(ddq_max: np.ndarray) -> np.ndarray:
     """``(linear m/s², angular rad/s²)``: the deceleration the pose correction counts on
-    (:func:`qpnso.control.tick.pose_correction`), half of the slowest joint's acceleration bound (the other half
-    left to the self-motion and the twist), times :data:`TOOL_BRAKING_LEVER` for the linear part; 0 (no braking)
-    when a joint has no bound."""
-    slowest = float(np.min(ddq_max)) if np.all(ddq_max > 0) else 0.0
-    return np.array([0.5 * slowest * TOOL_BRAKING_LEVER, 0.5 * slowest])
+    (:func:`qpnso.control.tick.pose_correction`), :data:`~qpnso.control.rows.braking.BRAKING_SHARE` of the slowest
+    joint's acceleration bound (the rest left to the self-motion and the twist), times
+    :data:`TOOL_BRAKING_LEVER` for the linear part; 0 (no braking) when a joint has no bound."""
+    slowest = BRAKING_SHARE * float(np.min(ddq_max)) if np.all(ddq_max > 0) else 0.0
+    return np.array([slowest * TOOL_BRAKING_LEVER, slowest])
 
 
 def params_dtype(n: int, rows: int = 0, points: int = 0, capsules: int = 0, obstacles: int = 0) -> np.dtype:

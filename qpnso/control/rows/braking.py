@@ -33,9 +33,10 @@ def braking_speed(distance, ddq_max, dt):
     return max(math.sqrt(half * half + 2.0 * ddq_max * reach) - half, one_tick)
 
 
-ROW_BRAKING_SHARE = 0.5
-"""The share of the self-motion's acceleration bound a row brakes with: the rest is left to the tool's own
-changes of speed and to the row's direction turning as the arm moves (braking at the whole bound, a hard elbow
+BRAKING_SHARE = 0.5
+"""The share of an acceleration bound a row or the tool's pose correction brakes with (the self-motion's for a row,
+the slowest joint's for the tool): the rest is left to the other motions and to the direction turning as the arm
+moves (braking at the whole bound, a hard elbow
 floor made the tool give way on 188 of 1500 ticks, by up to 1.3 mm; tests/test_rows.py)."""
 
 
@@ -59,10 +60,10 @@ def self_motion_acceleration(J, P):
 def row_braking(h, gradient, h_lo, h_hi, lo, hi, d, rate, dt):
     """A row's rate bounds ``(lo, hi)`` narrowed to the braking speed
     (:func:`~qpnso.control.rows.joint_limits.braking_speed`) of its distance to each bound, at the row's
-    acceleration along the self-motion, :data:`ROW_BRAKING_SHARE` of ``|∇h·d|·s̈_max``
+    acceleration along the self-motion, :data:`BRAKING_SHARE` of ``|∇h·d|·s̈_max``
     (:func:`self_motion_acceleration`): a held tool's arm
     slows a row down only through its self-motion.  ``rate`` 0 or a row the self-motion does not move: unchanged."""
-    a = ROW_BRAKING_SHARE * abs(dot(gradient, d)) * rate
+    a = BRAKING_SHARE * abs(dot(gradient, d)) * rate
     if a <= 0.0:
         return lo, hi
     return max(lo, -braking_speed(h - h_lo, a, dt)), min(hi, braking_speed(h_hi - h, a, dt))

@@ -5,7 +5,22 @@ One robot, two engines.  MuJoCo reads the robot's URDF; the model's reflected ro
 the robot's ``friction.tau_max``) and its viscous damping (``damping`` = the URDF's ``<dynamics damping>``,
 Pinocchio's ``model.damping``) are set on the MuJoCo joints, so the plant is the controller's model
 unless a :class:`ModelMismatch` says otherwise.  The one declared difference: the plant's Coulomb friction is
-MuJoCo's hard (set-valued) friction, the controller's is its smooth approximation [M 23].
+set-valued (it holds any joint torque up to ``tau_coulomb`` at rest), the controller's is its smooth
+approximation [M 23].
+
+The Coulomb friction holds (:func:`friction_constraint`).  MuJoCo's ``frictionloss`` is a soft constraint: a
+load below the friction level is not held but creeps, at a joint velocity of about
+``(1 - d)/d · d_width · timeconst/2`` times the acceleration the load alone would give (MuJoCo's reference
+acceleration ``a₁ + d·b·v = (1 - d)·a₀``, ``b = 2/(d_width·timeconst)``; a friction row's violation is
+identically 0, so only ``d = solimp[0]``, ``d_width = solimp[1]`` and the time constant act).  With MuJoCo's
+defaults (0.02 s, 0.9/0.95) a 1 N force at the gravity-compensated LWR4+ tool moves it 46 mm in 1 s, where a
+1.5 N·m Coulomb law holds it.  The plant sets each joint's friction row as stiff as MuJoCo allows instead: the
+impedance at MuJoCo's largest, 0.9999 (``mjMAXIMP``), and the time constant at twice the plant's step, the
+floor below which MuJoCo's docs say the integration may go unstable (and its ``refsafe`` flag clamps to);
+the creep is then ~10⁻⁴ of the default's (6 µm for that 1 N, tests/test_plant_friction.py).  Chosen over an
+explicit stick–slip law because the seven joints' sticking torques are coupled through A(q): holding
+them exactly is the box-constrained problem MuJoCo's constraint solver already solves each step, inside its
+implicit integration; an explicit law would solve it again outside, one step late.
 
 The plant integrates with MuJoCo's ``implicitfast`` integrator at ``timestep`` (default 0.5 ms: two steps
 per 1 kHz control tick), the torque command held over each tick.  Contacts are off (the arm meets no
@@ -34,6 +49,11 @@ from qpnso.model.robot import Robot
 from qpnso.settings import check, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
 
+FRICTION_IMPEDANCE = mujoco.mjMAXIMP
+"""MuJoCo's impedance ``d`` (``solimp[0]`` and ``solimp[1]``) of each joint's friction row: its largest value
+(``mjMAXIMP``), the stiffest Coulomb friction MuJoCo can run."""
+FRICTION_TIMECONST_STEPS = 2.0
+"""The time constant of each joint's friction row, in plant steps: MuJoCo's stated floor (``refsafe``)."""
 TOOL_SITE = "qpnso_tool"
 """Name of the MuJoCo site at the controller's tool point."""
 HAND_BODY = "qpnso_hand"
@@ -131,6 +151,16 @@ def tool_site_spec(robot: Robot) -> mujoco.MjSpec:
     return spec
 
 
+def friction_constraint(timestep: float) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo's ``(solref, solimp)`` of a joint's friction row at plant step ``timestep`` (s): time constant
+    :data:`FRICTION_TIMECONST_STEPS` steps (damping ratio 1; MuJoCo ignores it on a friction row), impedance
+    :data:`FRICTION_IMPEDANCE` at every violation (the row's violation is always 0; width, midpoint and power are
+    MuJoCo's defaults, unused)."""
+    solref = np.array([FRICTION_TIMECONST_STEPS * timestep, 1.0])
+    solimp = np.array([FRICTION_IMPEDANCE, FRICTION_IMPEDANCE, 0.001, 0.5, 2.0])
+    return solref, solimp
+
+
 def mujoco_joint_names(model: mujoco.MjModel) -> list[str]:
     """The names of a compiled MuJoCo model's joints, in order."""
     return [model.joint(j).name for j in range(model.njnt)]
@@ -182,6 +212,7 @@ class Plant:
             model.body_inertia[model.jnt_bodyid[k]] *= p.mass_scale[k]
         model.dof_armature[:] = p.armature
         model.dof_frictionloss[:] = p.tau_coulomb
+        model.dof_solref[:], model.dof_solimp[:] = friction_constraint(timestep)
         model.dof_damping[:] = p.damping
         return model
 
@@ -265,7 +296,9 @@ class Plant:
             "version": mujoco.__version__,
             "integrator": "implicitfast",
             "timestep_s": float(self.model.opt.timestep),
-            "friction": "coulomb (frictionloss) + viscous (damping)",
+            "friction": "coulomb (MuJoCo frictionloss, the stiffest row MuJoCo allows) + viscous (damping)",
+            "friction_solref": self.model.dof_solref[0].tolist(),
+            "friction_solimp": self.model.dof_solimp[0].tolist(),
             "mass_scale": p.mass_scale.tolist(),
             "tau_coulomb_Nm": p.tau_coulomb.tolist(),
             "armature_kgm2": p.armature.tolist(),

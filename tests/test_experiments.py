@@ -19,7 +19,6 @@ from qpnso.lab.experiments.analysis import normalise_per_subject
 from qpnso.lab.experiments.mass_friction import MassFrictionOptions, work_area
 from qpnso.lab.surgeon import (
     SUBJECT_RANGES,
-    ForceNoise,
     Subject,
     dome_targets,
     guidance_motion,
@@ -51,21 +50,6 @@ def test_subjects_are_drawn_in_the_stated_ranges() -> None:
             assert lo <= getattr(s, key) <= hi
 
 
-def test_force_noise_is_band_limited_with_the_stated_rms() -> None:
-    noise = ForceNoise(0.4, 10.0, 1e-3, 60_000, np.random.default_rng(2))
-    x = noise.samples
-    assert np.allclose(np.sqrt(np.mean(x**2, axis=0)), 0.4)
-    f, power = stats_psd(x[:, 0], 1e3)
-    assert power[f > 40].sum() < 0.01 * power.sum()  # a 2nd-order filter at 10 Hz: little above 40 Hz
-    assert np.all(ForceNoise(0.0, 10.0, 1e-3, 10, np.random.default_rng(0)).samples == 0)
-
-
-def stats_psd(x: np.ndarray, fs: float):
-    from scipy import signal
-
-    return signal.welch(x, fs=fs, nperseg=4096)
-
-
 def test_power_law_timing_is_slower_in_the_curves() -> None:
     """Under the re-timed parameter the speed is proportional to R^{1/3} where R < the half width."""
     a = 0.04
@@ -93,7 +77,7 @@ def test_guidance_and_point_to_point_motions() -> None:
     assert len(m.segments) == 6 and m.free_tool_axis
     ends = m.trajectory.samples(np.array([b for _, b in m.segments]))[0]
     assert np.allclose(ends, targets, atol=1e-6)
-    assert moving_segments(m.trajectory, 1e-4) == m.segments
+    assert moving_segments(m.trajectory) == m.segments
 
 
 # ------------------------------------------------------------------ statistics

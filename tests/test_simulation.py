@@ -104,7 +104,7 @@ def test_hold_protocol_the_held_tool_stays_while_qp_reconfigures() -> None:
     tool moves < 1 mm and the hand does < 0.05 J.  The plant's joint friction is off here (its Coulomb torque
     acts through the hand whatever the projector; the README gives that run's figures): this isolates the
     dynamically consistent projector, which the old plant's extra rotor inertia broke (84 mm, 7 J)."""
-    quiet = SimulationConfig(surgeon={"noise_rms": 0.0}, plant_friction=False)
+    quiet = SimulationConfig(surgeon={"tremor_rms_m": 0.0}, plant_friction=False)
     run = simulate_scenario("hold", "qp", duration_scale=0.5, simulation=quiet)  # (3 s of the 6: 23° of elbow)
     s = run.summary
     assert s["elbow_mobility_deg"] > 20.0 and "smoothness" not in s  # (a hold has no segment)
@@ -118,7 +118,7 @@ def test_the_hold_scenario_is_a_hold() -> None:
     sc = load_scenario("hold")
     motion = sc.motion()
     assert motion.segments == () and motion.duration == pytest.approx(6.0)
-    assert np.ptp(motion.trajectory.position, axis=0).max() == 0.0 and sc.surgeon == {"noise_rms": 0.0}
+    assert np.ptp(motion.trajectory.position, axis=0).max() == 0.0 and sc.surgeon == {"tremor_rms_m": 0.0}
 
 
 # ------------------------------------------------------------------ smoothness per segment
@@ -155,10 +155,48 @@ def test_smoothness_per_segment_not_of_the_whole_path() -> None:
 
 
 def test_every_simulation_summary_has_smoothness_per_segment() -> None:
+    """S per segment of the tool and of the intended motion itself; the hand's work, per metre of the measured
+    and of the intended path (recomputed here from the run's arrays)."""
     run = simulate_scenario("A", "qp", duration_scale=0.05, simulation=SimulationConfig(surgeon=Subject()))
-    keys = [k for k in run.summary if k.startswith("smoothness_segment_")]
-    assert keys and run.summary["smoothness"] == pytest.approx(np.median([run.summary[k] for k in keys]))
-    assert run.summary["hand_work_J"] > 0 and run.summary["orthogonal_torque_mean_Nm"] >= 0
+    s, a = run.summary, run.arrays
+    keys = [k for k in s if k.startswith("smoothness_segment_")]
+    assert keys and s["smoothness"] == pytest.approx(np.median([s[k] for k in keys]))
+    assert s["hand_work_J"] > 0 and s["orthogonal_torque_mean_Nm"] >= 0
+    assert [k for k in s if k.startswith("intended_smoothness_segment_")] == [f"intended_{k}" for k in keys]
+    assert s["intended_smoothness"] == pytest.approx(np.median([s[f"intended_{k}"] for k in keys]))
+    power = np.abs(np.einsum("ij,ij->i", a["hand_wrench"], a["tool_twist"]))
+    work = float(np.sum(0.5 * (power[1:] + power[:-1]) * np.diff(a["t"])))
+    steps = lambda p: float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))  # noqa: E731
+    assert s["hand_work_J"] == pytest.approx(work, rel=1e-12)
+    assert s["user_work_per_metre_N"] == pytest.approx(work / steps(a["tool_position"]), rel=1e-12)
+    assert s["intended_path_length_m"] == pytest.approx(steps(a["ref_position"]), rel=1e-12)
+    assert s["user_work_per_nominal_metre_N"] == pytest.approx(work / steps(a["ref_position"]), rel=1e-12)
+    assert run.setup["tremor_on"] is True
+
+
+def test_the_tremor_alone_on_the_held_tool(lwr) -> None:
+    """The tool held at scenario A's start (damped) with the tremor alone.  Off (``SimulationConfig.tremor``):
+    the tool does not move.  On, without the plant's joint friction: it trembles at 8–12 Hz, less than the hand
+    alone would (the tool's own inertia is added to the hand's; the figures with friction are in the report of
+    issue 32: a friction that holds keeps the tool still)."""
+    from scipy import signal
+
+    from qpnso.lab.scenarios import load_scenario
+
+    sc = load_scenario("A")
+    ctrl = qpnso.Controller(lwr, qpnso.ControllerConfig.from_dict({**sc.controller, "strategy": "damped"}))
+    motion, q0 = hold_motion(sc.tool_pose(), 4.0), sc.start(lwr)
+    surgeon = Subject(tremor_rms_m=150e-6)
+
+    def held(**options) -> tuple[float, float]:
+        run = simulate(ctrl, motion, q0, SimulationConfig(surgeon=surgeon, **options))
+        d = (run.arrays["tool_position"] - sc.tool_pose().translation)[1000:]  # after the first second
+        f, pxx = signal.welch(d, fs=1e3, nperseg=2048, axis=0)
+        return float(np.sqrt(np.mean(np.sum(d**2, axis=1)))), float(f[np.argmax(pxx.sum(axis=1))])
+
+    assert held(tremor=False, plant_friction=False)[0] < 1e-6
+    rms, peak = held(plant_friction=False)
+    assert 0.1 * surgeon.tremor_rms_m < rms < surgeon.tremor_rms_m and 8.0 <= peak <= 12.0
 
 
 # ------------------------------------------------------------------ error paths

@@ -117,8 +117,8 @@ def low_pass(t, p, cutoff_hz: float) -> np.ndarray:
 
 
 REST_SPEED = 0.005
-"""m/s: the tool speed under which a segment's record ends (its low-passed speed; the force noise keeps a
-held tool moving by about 1 mm/s)."""
+"""m/s: the tool speed under which a segment's record ends (its low-passed speed; the surgeon's tremor, 8–12 Hz,
+mostly above the smoothness filter's cut-off, keeps a held tool moving by less)."""
 
 
 def segment_smoothness(t, p, segments: Sequence[tuple[float, float]], cutoff_hz: float) -> dict[str, float]:
@@ -150,12 +150,17 @@ def segment_smoothness(t, p, segments: Sequence[tuple[float, float]], cutoff_hz:
     return out
 
 
-def hand_summary(t, wrench, twist, p) -> dict[str, float]:
-    """What the hand did in a run: ``hand_work_J`` = ∫|F·v + M·ω| dt (J), the absolute work of the hand's
-    wrench (N, N·m) on the tool's twist (m/s, rad/s), (N, 6) each, world frame; ``tool_displacement_max_m``,
-    the tool point's largest distance (m) from where it started; ``orthogonal_torque_mean_Nm``, the mean
-    magnitude of the hand's moment orthogonal to the tool's direction of motion over the ticks in which the
-    tool moves faster than 1 mm/s (the mass/friction paper's Fig. 10b; NaN when it never does)."""
+def hand_summary(t, wrench, twist, p, intended_p=None) -> dict[str, float]:
+    """What the hand did in a run: ``hand_work_J`` = W = ∫|F·v + M·ω| dt (J), the absolute work of the hand's
+    wrench (N, N·m) on the tool's twist (m/s, rad/s), (N, 6) each, world frame, trapezoidal rule; the work per
+    metre [M 24] under two readings of the path length: ``user_work_per_metre_N`` = W / L with L the measured
+    tool path (``p`` (N, 3) m, :func:`path_length`; a wandering tool lengthens it and lowers the figure), and,
+    with ``intended_p`` (N, 3) m, the intended motion's positions at the same times,
+    ``intended_path_length_m`` (L₀) and ``user_work_per_nominal_metre_N`` = W / L₀; each NaN when its length
+    is 0.  Also ``tool_displacement_max_m``, the tool point's largest distance (m) from where it started, and
+    ``orthogonal_torque_mean_Nm``, the mean magnitude of the hand's moment orthogonal to the tool's direction of
+    motion over the ticks in which the tool moves faster than 1 mm/s (the mass/friction paper's Fig. 10b; NaN
+    when it never does)."""
     ts = _array(t, "t", 1, min_len=2)
     f = _array(wrench, "wrench", 2, 6)
     v = _array(twist, "twist", 2, 6)
@@ -166,11 +171,24 @@ def hand_summary(t, wrench, twist, p) -> dict[str, float]:
     u = v[moving, :3] / speed[moving, None]
     m = f[moving, 3:]
     orthogonal = m - np.einsum("ij,ij->i", m, u)[:, None] * u
-    return {
-        "hand_work_J": absolute_work(f, v, ts),
+    work = absolute_work(f, v, ts)
+    out = {
+        "hand_work_J": work,
+        "user_work_per_metre_N": _per_metre(work, path_length(pos)),
         "tool_displacement_max_m": float(np.max(np.linalg.norm(pos - pos[0], axis=1))),
         "orthogonal_torque_mean_Nm": float(np.mean(np.linalg.norm(orthogonal, axis=1))) if moving.any() else math.nan,
     }
+    if intended_p is not None:
+        nominal = _array(intended_p, "intended_p", 2, 3)
+        _same_length(t=ts, intended_p=nominal)
+        length = path_length(nominal)
+        out.update(intended_path_length_m=length, user_work_per_nominal_metre_N=_per_metre(work, length))
+    return out
+
+
+def _per_metre(work: float, length: float) -> float:
+    """``work`` (J) per metre of ``length`` (m); NaN for a length of 0."""
+    return work / length if length > 0 else math.nan
 
 
 def rotation_angles(r_ref, r) -> np.ndarray:

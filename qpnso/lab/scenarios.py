@@ -204,7 +204,7 @@ def run_scenario(
     """Simulate hands-on guidance of scenario ``name`` with ``strategy``; the run's metrics.
 
     ``duration_scale`` < 1 runs only the start of the path (for quick checks).  ``seed`` seeds the
-    surgeon's force noise (the default surgeon, no model error).
+    surgeon's tremor (the default surgeon, no model error).
     """
     from qpnso.lab.simulation import SimulationConfig
 

@@ -5,13 +5,14 @@ The plant is MuJoCo (:class:`qpnso.lab.plant.Plant`), compiled from the robot's 
 armature and friction, drawn from it by ``model_error`` (default: none, so the plant is the controller's
 model).  The surgeon (:class:`qpnso.lab.surgeon.Subject`) intends a motion
 (:class:`qpnso.lab.surgeon.IntendedMotion`) and pulls the tool towards it through the arm's impedance,
-with band-limited force noise; the hand's force is applied at every plant step, the controller's torque
+with the force of the hand's physiological tremor (:class:`qpnso.lab.surgeon.Tremor`; ``SimulationConfig.tremor``
+turns it off); the hand's force is applied at every plant step, the controller's torque
 held over each control tick.  The controller runs in hands-on mode: its level-1 reference is the tool's
 measured pose and twist, so it never fights the hand.
 
 Recorded per tick: what the controller returned (:class:`qpnso.control.offline.Recorder`), the measured
 joint velocities, ``hand_wrench`` (N, N·m; world frame, tool point): the wrench the hand exerts on the tool,
-i.e. the arm's impedance wrench and noise minus the hand's own inertia times the tool's acceleration over
+i.e. the arm's impedance wrench and tremor force minus the hand's own inertia times the tool's acceleration over
 the tick (what a force sensor between handle and flange would read), ``tool_twist`` (m/s, rad/s).
 Felt mass and friction (``mass``, ``friction_force``) are the plant's (:meth:`Plant.felt`), the
 controller's estimates beside them (``mass_model``, ``friction_model``), every 10 ticks.
@@ -36,7 +37,7 @@ from qpnso.control.trajectory import Trajectory
 from qpnso.errors import QpnsoError
 from qpnso.lab.metrics import clearance_summary, hand_summary, segment_smoothness
 from qpnso.lab.plant import ModelMismatch, Plant, PlantParameters
-from qpnso.lab.surgeon import ForceNoise, IntendedMotion, Subject
+from qpnso.lab.surgeon import IntendedMotion, Subject, Tremor
 from qpnso.model.obstacles import Obstacle, as_obstacles
 from qpnso.model.robot import Robot
 from qpnso.settings import check, out_of_range
@@ -55,9 +56,11 @@ for human movement records, Winter; fixed before any result was seen)."""
 @dataclass
 class SimulationConfig:
     """Settings of the hands-on simulation: the plant's step (s; a divisor of the control period), the
-    surgeon (a :class:`Subject` or a dict), the plant's :class:`ModelMismatch` (or a dict), the force noise's
-    seed and the smoothness filter's cut-off (Hz).  ``plant_friction`` False takes the joints' friction out
-    of the plant (not out of the controller's model): an experiment that isolates the null-space projector."""
+    surgeon (a :class:`Subject` or a dict), the plant's :class:`ModelMismatch` (or a dict), the tremor's
+    seed (``noise_seed``) and the smoothness filter's cut-off (Hz).  ``tremor`` False turns the surgeon's
+    physiological tremor off for the run (the same subject otherwise: S with the noise on and off).
+    ``plant_friction`` False takes the joints' friction out of the plant (not out of the controller's model):
+    an experiment that isolates the null-space projector."""
 
     timestep: float = 1e-3
     surgeon: Subject = field(default_factory=Subject)
@@ -65,6 +68,7 @@ class SimulationConfig:
     noise_seed: int = 0
     smoothness_cutoff_hz: float = SMOOTHNESS_CUTOFF_HZ
     plant_friction: bool = True
+    tremor: bool = True
 
     def __post_init__(self) -> None:
         """Types first (:func:`qpnso.settings.check`), then ranges."""
@@ -95,7 +99,10 @@ def simulate(
     (rad/s), ``hand_wrench`` (N, N·m), ``tool_twist`` (m/s, rad/s) (``ref_position`` is the intended position),
     ``mass_model`` (kg) and ``friction_model`` (N), and the run's summary: the metrics of docs/method.md §9,
     the smoothness per segment (``smoothness_segment_k``, ``smoothness`` their median; positions low-passed
-    at ``smoothness_cutoff_hz``), :func:`qpnso.lab.metrics.hand_summary`, felt mass and friction.
+    at ``smoothness_cutoff_hz``), the intended motion's own (``intended_smoothness_segment_k``,
+    ``intended_smoothness``: :func:`intended_smoothness`), :func:`qpnso.lab.metrics.hand_summary` (``hand_work_J``,
+    ``user_work_per_metre_N`` over the measured path, ``user_work_per_nominal_metre_N`` over the intended one,
+    ``intended_path_length_m``), felt mass and friction.
     ``RunResult.setup`` names the plant (engine, version, parameters) and the surgeon.
 
     ``room``: the keep-out volumes of the room (world frame, m; default: the controller's own).  When there are
@@ -116,7 +123,7 @@ def simulate(
     plant = make_plant(robot, cfg, dt)
     plant.reset(q)
     controller.reset(q)
-    hand = HandOnTool(plant, cfg.surgeon, motion, n_ticks, dt, cfg.noise_seed)
+    hand = HandOnTool(plant, cfg.surgeon, motion, n_ticks, dt, cfg.noise_seed if cfg.tremor else None)
     recorder = Recorder(controller, feel_every=10, felt=lambda qs: plant.felt(qs, controller.cost.potential_speed))
     t0 = float(motion.trajectory.t[0])
     for k in range(n_ticks):
@@ -158,11 +165,18 @@ def make_plant(robot: Robot, cfg: SimulationConfig, dt: float) -> Plant:
 
 class HandOnTool:
     """The surgeon's hand on the plant's tool: every plant step, the arm impedance towards the intended
-    motion (sampled once for the whole run) and the force noise act on the hand body; the controller's
-    torque is held over the tick.  The plant must be at its start (:meth:`Plant.reset`)."""
+    motion (sampled once for the whole run) and the tremor's force (:class:`Tremor`, seeded by ``tremor_seed``;
+    None: no tremor) act on the hand body; the controller's torque is held over the tick.  The plant must be at
+    its start (:meth:`Plant.reset`)."""
 
     def __init__(
-        self, plant: Plant, surgeon: Subject, motion: IntendedMotion, n_ticks: int, dt: float, noise_seed: int
+        self,
+        plant: Plant,
+        surgeon: Subject,
+        motion: IntendedMotion,
+        n_ticks: int,
+        dt: float,
+        tremor_seed: int | None,
     ) -> None:
         self.plant, self.surgeon, self.free_axis = plant, surgeon, motion.free_tool_axis
         self.dt = dt
@@ -170,7 +184,7 @@ class HandOnTool:
         h = dt / self.substeps
         n = n_ticks * self.substeps
         self.intended = motion.trajectory.samples(float(motion.trajectory.t[0]) + h * np.arange(n))
-        self.noise = ForceNoise(surgeon.noise_rms, surgeon.noise_cutoff_hz, h, n, np.random.default_rng(noise_seed))
+        self.tremor = None if tremor_seed is None else Tremor(surgeon, h, n, np.random.default_rng(tremor_seed))
         self.inertia = np.array([surgeon.mass] * 3 + [surgeon.rotational_inertia] * 3)
         self.tool = plant.tool_state()
 
@@ -181,14 +195,15 @@ class HandOnTool:
 
     def tick(self, k: int, tau: np.ndarray) -> np.ndarray:
         """Advance the plant over tick ``k`` with the torque ``tau`` (N·m) held; returns the wrench the hand
-        exerted on the tool at the tick's start (N, N·m; world frame): the impedance wrench and noise minus the
+        exerted on the tool at the tick's start (N, N·m; world frame): the impedance wrench and tremor minus the
         hand's inertia times the tool's acceleration over the tick, what a handle's force sensor reads."""
         start = np.concatenate([self.tool[2], self.tool[3]])
         applied = None
         for i in range(self.substeps):
             j = k * self.substeps + i
             wrench = self.surgeon.wrench(tuple(x[j] for x in self.intended), self.tool, self.free_axis)
-            wrench[:3] += self.noise(j)
+            if self.tremor is not None:
+                wrench[:3] += self.tremor(j)
             applied = wrench if applied is None else applied
             self.plant.step(tau, wrench)
             self.tool = self.plant.tool_state()
@@ -200,13 +215,27 @@ class HandOnTool:
 
 def summarise(result: RunResult, motion: IntendedMotion, cfg: SimulationConfig) -> None:
     """A simulation's summary beyond :class:`~qpnso.control.offline.Recorder`'s: S per segment (the whole
-    record's S grows like K² over K segments: removed), :func:`qpnso.lab.metrics.hand_summary`, and the
-    run's set-up (plant, surgeon, model error) in ``result.setup``."""
+    record's S grows like K² over K segments: removed), the intended motion's own S per segment
+    (:func:`intended_smoothness`), :func:`qpnso.lab.metrics.hand_summary` (the work per metre of the measured
+    and of the intended path), and the run's set-up (plant, surgeon, model error, tremor on or off) in
+    ``result.setup``."""
     a = result.arrays
     result.summary.pop("smoothness", None)
     result.summary.update(segment_smoothness(a["t"], a["tool_position"], motion.segments, cfg.smoothness_cutoff_hz))
-    result.summary.update(hand_summary(a["t"], a["hand_wrench"], a["tool_twist"], a["tool_position"]))
-    result.setup.update(surgeon=asdict(cfg.surgeon), model_error=asdict(cfg.model_error))
+    result.summary.update(intended_smoothness(a["t"], motion, cfg.smoothness_cutoff_hz))
+    intended = motion.trajectory.samples(a["t"])[0]
+    result.summary.update(hand_summary(a["t"], a["hand_wrench"], a["tool_twist"], a["tool_position"], intended))
+    result.setup.update(surgeon=asdict(cfg.surgeon), model_error=asdict(cfg.model_error), tremor_on=cfg.tremor)
+
+
+def intended_smoothness(t: np.ndarray, motion: IntendedMotion, cutoff_hz: float) -> dict[str, float]:
+    """The smoothness S [E 14] of the noise-free intended motion itself, per segment, as a run's record is scored
+    (:func:`qpnso.lab.metrics.segment_smoothness` of ``motion``'s trajectory sampled at the record's uniform times
+    ``t`` (s), low-passed at ``cutoff_hz``): ``intended_smoothness_segment_<k>`` and ``intended_smoothness`` (their
+    median).  A threshold on S that these exceed cannot be met by any controller."""
+    positions = motion.trajectory.samples(np.asarray(t, dtype=float))[0]
+    scores = segment_smoothness(t, positions, motion.segments, cutoff_hz)
+    return {f"intended_{k}": v for k, v in scores.items()}
 
 
 def clearance_meter(

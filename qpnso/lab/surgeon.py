@@ -3,19 +3,35 @@
 The hand is not a path follower.  The surgeon intends a motion (:class:`IntendedMotion`: minimum-jerk
 point-to-point moves, the elbow paper's lemniscates timed by the two-thirds power law, or a hold); the
 arm's endpoint impedance (:class:`Subject`: a hand mass at the tool, stiffness and damping, with
-rotational counterparts) pulls the tool towards it, plus band-limited force noise (:class:`ForceNoise`).
-The tool's path emerges from the interaction with the robot.
+rotational counterparts) pulls the tool towards it, plus the force of the hand's physiological tremor
+(:class:`Tremor`).  The tool's path emerges from the interaction with the robot.
 
-Parameters, fixed before any result was seen (stated assumptions, from the endpoint-impedance literature
-the issue names: Mussa-Ivaldi, Hogan and Flash 1985; Burdet et al. 2001; Flash and Hogan 1985 for the
-minimum-jerk moves; Lacquaniti, Terzuolo and Viviani 1983 for the two-thirds power law):
+Parameters, fixed before any result was seen (sources, or "assumed" where none exists):
 
-* translational: hand mass 1–2 kg, stiffness 100–300 N/m, damping 10–30 N·s/m (:data:`SUBJECT_RANGES`);
-* rotational (ours, assumed; the wrist's stiffness of a relaxed grip is a few N·m/rad): stiffness
+* translational impedance: hand mass 1–2 kg, stiffness 100–300 N/m, damping 10–30 N·s/m
+  (:data:`SUBJECT_RANGES`; stated assumptions from the endpoint-impedance literature: Mussa-Ivaldi, Hogan
+  and Flash 1985; Burdet et al. 2001);
+* rotational (assumed; the wrist's stiffness of a relaxed grip is a few N·m/rad): stiffness
   2–6 N·m/rad, damping 0.05–0.2 N·m·s/rad, hand inertia 1e-3 kg·m² about each axis;
-* force noise: 0.2–0.5 N RMS per axis, white noise low-passed at 10 Hz (physiological force
-  fluctuation and tremor band; assumed);
-* a subject is a uniform draw in these ranges (seeded); speed scales 0.8–1.2 of the protocol's speed.
+* voluntary motion: minimum-jerk moves (Flash and Hogan 1985), lemniscates timed by the two-thirds power
+  law (Lacquaniti, Terzuolo and Viviani 1983); its power lies below 2 Hz as measured in eye surgeons (Riviere,
+  Rader and Khosla, "Characteristics of hand motion of eye surgeons", Proc. 19th IEEE EMBS, 1997,
+  pp. 1690–1693: on average 98.9 % of the power of the voluntary movements below 2 Hz);
+* physiological tremor: a displacement of the hand band-limited to :data:`TREMOR_BAND_HZ` = 8–12 Hz (the
+  8–12 Hz component of physiological tremor: Elble, "Physiologic and essential tremor", Neurology 36(2),
+  1986, pp. 225–231; Elble and Koller, *Tremor*, Johns Hopkins University Press, 1990), of RMS 50–200 µm
+  (Wells, Yang, MacLachlan, Handa, Gehlbach and Riviere, "Comparison of baseline tremor under various
+  microsurgical conditions", Proc. IEEE SMC 2013, pp. 1482–1487: "an RMS amplitude on the order of
+  50–200 µm ... commonly in the 8–12 Hz band", and 144 µm 3-D RMS in their unconstrained pointing task;
+  Riviere, Rader and Khosla 1997: eye surgeons holding an instrument still, 49 µm RMS error, 202 µm
+  range).  ``tremor_rms_m`` is the RMS of the 3-D displacement, shared equally by the three axes
+  (isotropic: assumed); its spectrum is flat in the band (assumed); no rotational tremor (assumed).  It
+  acts as the force that produces exactly that displacement on the hand alone, F = m d̈ + B ḋ + K d
+  (the subject's hand mass, damping and stiffness), so a hand holding a free instrument trembles as
+  measured; on the robot the tool's tremor is what the coupled dynamics make of that force.  It starts
+  from rest over :data:`TREMOR_FADE_IN_S` (ours, assumed) so that hand and tool start together at rest;
+* a subject is a uniform draw in these ranges (seeded); speed scales 0.8–1.2 of the protocol's speed
+  (assumed).
 
 In point-to-point moves the rotation about the tool axis is left free (``free_tool_axis``): the hand
 neither holds nor turns the tool about it.
@@ -24,14 +40,14 @@ neither holds nor turns the tool about it.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
 import numpy as np
 import pinocchio as pin
-from scipy import signal
 
 from qpnso.control.trajectory import Trajectory
-from qpnso.settings import check, out_of_range
+from qpnso.settings import SettingError, check, out_of_range, show
 from qpnso.settings import from_dict as settings_from_dict
 
 SUBJECT_RANGES: dict[str, tuple[float, float]] = {
@@ -40,17 +56,34 @@ SUBJECT_RANGES: dict[str, tuple[float, float]] = {
     "damping": (10.0, 30.0),  # N·s/m
     "rotational_stiffness": (2.0, 6.0),  # N·m/rad
     "rotational_damping": (0.05, 0.2),  # N·m·s/rad
-    "noise_rms": (0.2, 0.5),  # N per axis
+    "tremor_rms_m": (50e-6, 200e-6),  # m, RMS of the tremor's 3-D displacement
     "speed_scale": (0.8, 1.2),
 }
 """The ranges a subject is drawn from (uniform), see the module's docstring for their sources."""
+
+TREMOR_BAND_HZ: tuple[float, float] = (8.0, 12.0)
+"""Hz: the band of the physiological tremor's displacement (Elble 1986; Elble and Koller 1990)."""
+TREMOR_FADE_IN_S = 0.5
+"""s: the tremor grows from rest over this time (a quintic ramp; ours, assumed), so that the hand starts at rest
+with the tool and the hand alone follows the tremor's displacement from the first sample."""
+TREMOR_SYNTHESIS_S = 10.0
+"""s: the shortest record the tremor is synthesised over (0.1 Hz between its spectral lines, 41 in the band),
+so that a short run's tremor has the same spectrum as a long one's."""
+RENAMED_SUBJECT_KEYS = {
+    "noise_rms": "the surgeon's force noise (N) is now the physiological tremor: give 'tremor_rms_m' (m, RMS of "
+    "its 3-D displacement, 50e-6 to 200e-6; 0 turns it off)",
+    "noise_cutoff_hz": "the tremor's band is fixed at 8-12 Hz (TREMOR_BAND_HZ): give 'tremor_rms_m' (m, RMS of "
+    "its 3-D displacement) instead",
+}
+"""Keys of earlier versions of :class:`Subject` and what replaced them (the error a table with one gets)."""
 
 
 @dataclass(frozen=True)
 class Subject:
     """A virtual surgeon: hand mass (kg) at the tool, arm endpoint impedance towards the intended pose
-    (N/m, N·s/m; N·m/rad, N·m·s/rad), force noise (N RMS per axis, low-passed at ``noise_cutoff_hz``),
-    and the scale of the protocol's speed.  Defaults: the middle of :data:`SUBJECT_RANGES`."""
+    (N/m, N·s/m; N·m/rad, N·m·s/rad), the physiological tremor's RMS displacement ``tremor_rms_m`` (m, 3-D,
+    band :data:`TREMOR_BAND_HZ`; 0: none, see :class:`Tremor`) and the scale of the protocol's speed.
+    Defaults: the middle of :data:`SUBJECT_RANGES`."""
 
     mass: float = 1.5
     stiffness: float = 200.0
@@ -58,8 +91,7 @@ class Subject:
     rotational_stiffness: float = 4.0
     rotational_damping: float = 0.125
     rotational_inertia: float = 1e-3  # kg·m²
-    noise_rms: float = 0.35
-    noise_cutoff_hz: float = 10.0
+    tremor_rms_m: float = 125e-6
     speed_scale: float = 1.0
 
     def __post_init__(self) -> None:
@@ -67,12 +99,17 @@ class Subject:
         for f in fields(self):
             if getattr(self, f.name) < 0:
                 raise out_of_range(self, f.name, "must be >= 0")
-        if self.noise_cutoff_hz <= 0 or self.speed_scale <= 0:
-            raise out_of_range(self, "noise_cutoff_hz" if self.noise_cutoff_hz <= 0 else "speed_scale", "must be > 0")
+        if self.speed_scale <= 0:
+            raise out_of_range(self, "speed_scale", "must be > 0")
 
     @classmethod
     def from_dict(cls, values: dict, where: str = "") -> "Subject":
-        """Build from plain data (a ``[surgeon]`` table)."""
+        """Build from plain data (a ``[surgeon]`` table); a key of an earlier version
+        (:data:`RENAMED_SUBJECT_KEYS`) is a :class:`~qpnso.settings.SettingError` naming what replaced it."""
+        if isinstance(values, Mapping):
+            for key, value in values.items():
+                if key in RENAMED_SUBJECT_KEYS:
+                    raise SettingError(where or cls.__name__, str(key), RENAMED_SUBJECT_KEYS[key], show(value))
         return settings_from_dict(cls, values, where)
 
     @classmethod
@@ -96,22 +133,63 @@ class Subject:
         return np.concatenate([force, moment])
 
 
-class ForceNoise:
-    """Band-limited force noise (N, world frame, 3 axes): white noise low-passed by a 2nd-order Butterworth
-    filter at ``cutoff_hz``, scaled to ``rms`` N per axis; ``n`` samples at ``dt`` s, seeded."""
+class Tremor:
+    """The physiological tremor of ``surgeon``'s hand over ``n`` samples at ``dt`` s (world frame, 3 axes),
+    seeded by ``rng``: the displacement ``displacement`` (m) with its derivatives ``velocity`` (m/s) and
+    ``acceleration`` (m/s²), from :func:`band_limited_motion` (:data:`TREMOR_BAND_HZ`, 3-D RMS
+    ``surgeon.tremor_rms_m``), and ``force`` (N), the force that produces exactly that displacement on the hand
+    alone (mass m held by the arm's stiffness K and damping B to a still intended pose):
+    F = m d̈ + B ḋ + K d."""
 
-    def __init__(self, rms: float, cutoff_hz: float, dt: float, n: int, rng: np.random.Generator) -> None:
-        white = rng.standard_normal((n + 2000, 3))
-        if rms > 0:
-            sos = signal.butter(2, min(cutoff_hz, 0.45 / dt), fs=1.0 / dt, output="sos")
-            band = signal.sosfilt(sos, white, axis=0)[2000:]  # the filter's start-up dropped
-            self.samples = band * (rms / np.sqrt(np.mean(band**2, axis=0)))
-        else:
-            self.samples = np.zeros((n, 3))
+    def __init__(self, surgeon: Subject, dt: float, n: int, rng: np.random.Generator) -> None:
+        self.displacement, self.velocity, self.acceleration = band_limited_motion(
+            surgeon.tremor_rms_m, TREMOR_BAND_HZ, dt, n, rng
+        )
+        self.force = (
+            surgeon.mass * self.acceleration + surgeon.damping * self.velocity + surgeon.stiffness * self.displacement
+        )
 
     def __call__(self, k: int) -> np.ndarray:
-        """The noise force at sample ``k`` (held at the last sample beyond the end)."""
-        return self.samples[min(k, len(self.samples) - 1)]
+        """The tremor's force (N) at sample ``k`` (held at the last sample beyond the end)."""
+        return self.force[min(k, len(self.force) - 1)]
+
+
+def band_limited_motion(
+    rms: float, band_hz: tuple[float, float], dt: float, n: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A random 3-D displacement (m) with its velocity (m/s) and acceleration (m/s²), (n, 3) each at ``dt`` s: a
+    sum of sinusoids at every spectral line of a record of max(``n``·``dt``, :data:`TREMOR_SYNTHESIS_S`) s that
+    lies in ``band_hz``, with Gaussian coefficients (a flat spectrum in the band), differentiated exactly (iω,
+    −ω² per line); scaled so that the RMS of the 3-D displacement over the samples after the fade-in (all of
+    them in a shorter record) is ``rms``; then grown from rest by the quintic ramp w(t) over
+    :data:`TREMOR_FADE_IN_S` (d = w·s, ḋ = ẇ·s + w·ṡ, d̈ = ẅ·s + 2ẇ·ṡ + w·s̈), so d, ḋ (and the force) start at 0.
+    Zero arrays for ``rms`` 0."""
+    if rms == 0:
+        zero = np.zeros((n, 3))
+        return zero, zero.copy(), zero.copy()
+    length = max(n, int(np.ceil(TREMOR_SYNTHESIS_S / dt)))
+    f = np.fft.rfftfreq(length, dt)
+    lines = (f >= band_hz[0]) & (f <= band_hz[1])
+    spectrum = np.zeros((len(f), 3), dtype=complex)
+    spectrum[lines] = rng.standard_normal((lines.sum(), 3)) + 1j * rng.standard_normal((lines.sum(), 3))
+    omega = 2.0 * np.pi * f[:, None]
+    s, ds, dds = (
+        np.fft.irfft(x, length, axis=0)[:n] for x in (spectrum, 1j * omega * spectrum, -(omega**2) * spectrum)
+    )
+    t = dt * np.arange(n)
+    steady = t >= TREMOR_FADE_IN_S if t[-1] > 2 * TREMOR_FADE_IN_S else np.ones(n, dtype=bool)
+    scale = rms / np.sqrt(np.mean(np.sum(s[steady] ** 2, axis=1)))
+    s, ds, dds = s * scale, ds * scale, dds * scale
+    w, dw, ddw = (x[:, None] for x in quintic_ramp(t / TREMOR_FADE_IN_S))
+    dw, ddw = dw / TREMOR_FADE_IN_S, ddw / TREMOR_FADE_IN_S**2
+    return w * s, dw * s + w * ds, ddw * s + 2 * dw * ds + w * dds
+
+
+def quintic_ramp(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ramp r(x) = 10x³ − 15x⁴ + 6x⁵ on [0, 1] (0 before, 1 after) and its first two derivatives in x:
+    0 to 1 with zero slope and curvature at both ends."""
+    x = np.clip(x, 0.0, 1.0)
+    return x**3 * (10 - 15 * x + 6 * x**2), 30 * x**2 * (1 - x) ** 2, 60 * x * (1 - x) * (1 - 2 * x)
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,7 +275,7 @@ def point_to_point_motion(
         [start, *np.asarray(targets, dtype=float)], peak_speed=peak_speed, dwell=dwell, lift=0.0, dt=dt
     )
     traj = with_rest(traj, dwell)
-    return IntendedMotion(traj, moving_segments(traj, rest_speed=1e-4), free_tool_axis=True)
+    return IntendedMotion(traj, moving_segments(traj), free_tool_axis=True)
 
 
 def with_rest(traj: Trajectory, duration: float) -> Trajectory:

@@ -205,3 +205,21 @@ def test_the_intended_smoothness_of_a_minimum_jerk_move_is_sqrt_720() -> None:
         assert intended_smoothness(t, motion, SMOOTHNESS_CUTOFF_HZ)["intended_smoothness"] == pytest.approx(
             scored, rel=0.005
         )
+
+
+def test_the_voluntary_correction_integrates_the_error_beyond_its_deadband_up_to_its_force() -> None:
+    """Closed form: a constant 10 mm error for 1 s at 2 1/s moves the equilibrium by 2·(10 − 2) mm = 16 mm along
+    it; a large error saturates at correction_force_max/stiffness; an error inside the deadband changes nothing."""
+    from qpnso.lab.surgeon import VOLUNTARY_DEADBAND_M
+
+    s = Subject(stiffness=200.0, correction_rate=2.0, correction_force_max=30.0)
+    e = np.array([0.0, 0.01, 0.0])
+    c = np.zeros(3)
+    for _ in range(1000):
+        c = s.correct(c, e, 1e-3)
+    assert c == pytest.approx([0.0, 2.0 * (0.01 - VOLUNTARY_DEADBAND_M), 0.0], abs=1e-12)
+    for _ in range(100_000):
+        c = s.correct(c, np.array([0.3, 0.0, 0.0]), 1e-3)
+    assert 200.0 * np.linalg.norm(c) == pytest.approx(30.0)
+    assert np.all(s.correct(np.zeros(3), np.array([0.0, 0.0, 0.5 * VOLUNTARY_DEADBAND_M]), 1e-3) == 0.0)
+    assert np.all(Subject(correction_rate=0.0).correct(np.zeros(3), e, 1e-3) == 0.0)

@@ -165,7 +165,7 @@ def make_plant(robot: Robot, cfg: SimulationConfig, dt: float) -> Plant:
 
 class HandOnTool:
     """The surgeon's hand on the plant's tool: every plant step, the arm impedance towards the intended
-    motion (sampled once for the whole run) and the tremor's force (:class:`Tremor`, seeded by ``tremor_seed``;
+    motion (sampled once for the whole run) moved by the voluntary correction (:meth:`Subject.correct`) and the tremor's force (:class:`Tremor`, seeded by ``tremor_seed``;
     None: no tremor) act on the hand body; the controller's torque is held over the tick.  The plant must be at
     its start (:meth:`Plant.reset`)."""
 
@@ -187,6 +187,7 @@ class HandOnTool:
         self.tremor = None if tremor_seed is None else Tremor(surgeon, h, n, np.random.default_rng(tremor_seed))
         self.inertia = np.array([surgeon.mass] * 3 + [surgeon.rotational_inertia] * 3)
         self.tool = plant.tool_state()
+        self.correction = np.zeros(3)  # m: the voluntary correction of the impedance's equilibrium point
 
     def intended_pose(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(rotation, position) the surgeon intends at the start of tick ``k`` (world frame)."""
@@ -201,7 +202,9 @@ class HandOnTool:
         applied = None
         for i in range(self.substeps):
             j = k * self.substeps + i
-            wrench = self.surgeon.wrench(tuple(x[j] for x in self.intended), self.tool, self.free_axis)
+            p_d, r_d, v_d, w_d = (x[j] for x in self.intended)
+            self.correction = self.surgeon.correct(self.correction, p_d - self.tool[0], self.dt / self.substeps)
+            wrench = self.surgeon.wrench((p_d + self.correction, r_d, v_d, w_d), self.tool, self.free_axis)
             if self.tremor is not None:
                 wrench[:3] += self.tremor(j)
             applied = wrench if applied is None else applied

@@ -30,6 +30,12 @@ Parameters, fixed before any result was seen (sources, or "assumed" where none e
   (the subject's hand mass, damping and stiffness), so a hand holding a free instrument trembles as
   measured; on the robot the tool's tremor is what the coupled dynamics make of that force.  It starts
   from rest over :data:`TREMOR_FADE_IN_S` (ours, assumed) so that hand and tool start together at rest;
+* voluntary correction: the surgeon means to reach the intended pose, so the impedance's equilibrium point
+  moves by the integral of the remaining position error, ċ = ``correction_rate``·(p_d − p), with the
+  force ``stiffness``·‖c‖ capped at ``correction_force_max`` (:data:`VOLUNTARY_CORRECTION_RATE`,
+  :data:`VOLUNTARY_FORCE_MAX`; assumed).  Without it a 100–300 N/m spring towards the intended path cannot
+  break the joints' Coulomb friction (1.5 N·m each): on the rigid-body plant the tool moved 18 mm of an
+  intended 211 mm and the trials measured a stuck tool;
 * a subject is a uniform draw in these ranges (seeded); speed scales 0.8–1.2 of the protocol's speed
   (assumed).
 
@@ -69,6 +75,15 @@ with the tool and the hand alone follows the tremor's displacement from the firs
 TREMOR_SYNTHESIS_S = 10.0
 """s: the shortest record the tremor is synthesised over (0.1 Hz between its spectral lines, 41 in the band),
 so that a short run's tremor has the same spectrum as a long one's."""
+VOLUNTARY_CORRECTION_RATE = 2.0
+"""1/s: the voluntary correction's integral gain (time constant 0.5 s, a crossover well below the 2 Hz of
+voluntary motion and slower than the 0.15–0.25 s of visuomotor feedback; ours, assumed)."""
+VOLUNTARY_DEADBAND_M = 2e-3
+"""m: errors below this are not corrected (the hand's positioning resolution without magnification; ours,
+assumed): the correction stops hunting once the tool is near its target."""
+VOLUNTARY_FORCE_MAX = 30.0
+"""N: the largest force the voluntary correction adds to the impedance's (ours, assumed: a hand guiding an
+instrument; twenty times the tremor's force, below a hand's maximal push)."""
 RENAMED_SUBJECT_KEYS = {
     "noise_rms": "the surgeon's force noise (N) is now the physiological tremor: give 'tremor_rms_m' (m, RMS of "
     "its 3-D displacement, 50e-6 to 200e-6; 0 turns it off)",
@@ -93,6 +108,8 @@ class Subject:
     rotational_inertia: float = 1e-3  # kg·m²
     tremor_rms_m: float = 125e-6
     speed_scale: float = 1.0
+    correction_rate: float = VOLUNTARY_CORRECTION_RATE  # 1/s: the voluntary correction's integral gain
+    correction_force_max: float = VOLUNTARY_FORCE_MAX  # N: the largest force the correction adds
 
     def __post_init__(self) -> None:
         check(self)
@@ -116,6 +133,16 @@ class Subject:
     def draw(cls, rng: np.random.Generator) -> "Subject":
         """A subject drawn uniformly from :data:`SUBJECT_RANGES`."""
         return cls(**{k: float(rng.uniform(lo, hi)) for k, (lo, hi) in SUBJECT_RANGES.items()})
+
+    def correct(self, correction: np.ndarray, error: np.ndarray, dt: float) -> np.ndarray:
+        """The voluntary correction (m, world frame) after ``dt`` s with the position ``error`` p_d − p (m):
+        ``correction + dt·correction_rate·error``, scaled so that ``stiffness``·‖c‖ ≤ ``correction_force_max``."""
+        norm_e = float(np.sqrt(error @ error))
+        beyond = error * (1.0 - VOLUNTARY_DEADBAND_M / norm_e) if norm_e > VOLUNTARY_DEADBAND_M else 0.0 * error
+        c = correction + dt * self.correction_rate * beyond
+        limit = self.correction_force_max / self.stiffness if self.stiffness > 0 else 0.0
+        norm = float(np.sqrt(c @ c))
+        return c * (limit / norm) if norm > limit else c
 
     def wrench(self, intended: tuple, tool: tuple, free_axis: bool = False) -> np.ndarray:
         """The arm's impedance wrench on the hand (N, N·m; world frame, at the tool point).

@@ -195,7 +195,7 @@ def test_elbow_experiment_from_the_command_line(tmp_path, capsys) -> None:
     [
         ("mass-friction", {"subjects": 0}, "subjects must be >= 1"),
         ("mass-friction", {"moves": 1}, r"moves must be in \[2, 12\]"),
-        ("mass-friction", {"armature_scale": -1.0}, "armature_scale must be >= 0"),
+        ("mass-friction", {"armature_kgm2": -1.0}, "armature_kgm2 must be a finite rotor inertia >= 0"),
         ("elbow", {"trials": 0}, "subjects and trials must be >= 1"),
         ("elbow", {"duration_scale": 0.0}, r"duration_scale must be in \(0, 1\]"),
         ("walking", {}, "unknown experiment 'walking'"),

@@ -102,16 +102,32 @@ def test_mass_matrix_is_symmetric_positive_definite(lwr, rng) -> None:
         assert np.linalg.eigvalsh(a)[0] > 0
 
 
-def test_mass_matrix_matches_kinetic_energy(lwr, rng) -> None:
+def test_mass_matrix_matches_kinetic_energy(rng) -> None:
     """½ dqᵀ A dq equals the links' kinetic energy computed by Pinocchio from their velocities (a copy of the
-    model without rotors) plus the rotors' ½ Σ armature·dq²."""
-    q, dq = lwr.random_q(rng), rng.normal(size=7)
-    links = lwr.model.copy()
+    model without rotors) plus the rotors' ½ Σ armature·dq² (one rotor inertia per joint, each different)."""
+    robot = qpnso.load_robot("lwr4p", armature=np.linspace(0.02, 0.14, 7))
+    q, dq = robot.random_q(rng), rng.normal(size=7)
+    links = robot.model.copy()
     links.armature = np.zeros(7)
     energy = pin.computeKineticEnergy(links, links.createData(), q, dq)
-    energy += 0.5 * np.sum(lwr.model.armature * dq**2)
-    assert np.all(lwr.model.armature > 0)
-    assert np.isclose(0.5 * dq @ lwr.mass_matrix(q) @ dq, energy, rtol=1e-12)
+    energy += 0.5 * np.sum(robot.model.armature * dq**2)
+    assert np.isclose(0.5 * dq @ robot.mass_matrix(q) @ dq, energy, rtol=1e-12)
+
+
+def test_load_robot_with_armature() -> None:
+    """None keeps the model's rotor inertia (``models/armature.json``), a number sets it on every joint, anything
+    else is refused by name; the LWR4+'s own is 0 ([M]'s rigid-body plant)."""
+    from qpnso.errors import ConfigError
+    from qpnso.model.robot import load_robot_with_armature
+
+    assert np.array_equal(load_robot_with_armature("lwr4p", None).model.armature, np.zeros(7))
+    assert np.array_equal(
+        load_robot_with_armature("iiwa14", None).model.armature, qpnso.load_robot("iiwa14").model.armature
+    )
+    assert np.array_equal(load_robot_with_armature("lwr4p", 0.03).model.armature, np.full(7, 0.03))
+    for bad in (-0.01, float("nan"), float("inf"), "0.1", True):
+        with pytest.raises(ConfigError, match="armature_kgm2"):
+            load_robot_with_armature("lwr4p", bad)  # type: ignore[arg-type]
 
 
 def test_friction_is_the_smooth_coulomb_model(lwr) -> None:

@@ -18,9 +18,9 @@ from qpnso.lab.surgeon import Subject, hold_motion
 # ------------------------------------------------------------------ one robot, two engines
 @pytest.mark.parametrize("name", ["lwr4p", "iiwa14"])
 def test_mujoco_and_pinocchio_agree_on_mass_gravity_and_jacobian(name) -> None:
-    """Must hold: M, g and the tool Jacobian to 1e-9 on 1000 random configurations, armature included."""
-    robot = qpnso.load_robot(name)
-    assert np.all(robot.model.armature > 0)  # (the armature is part of the model: models/armature.json)
+    """Must hold: M, g and the tool Jacobian to 1e-9 on 1000 random configurations, armature included (one
+    rotor inertia per joint, each different: the LWR4+'s own is 0)."""
+    robot = qpnso.load_robot(name, armature=np.linspace(0.02, 0.14, 7))
     plant = Plant(robot)
     rng = np.random.default_rng(7)
     worst = np.zeros(3)
@@ -32,8 +32,10 @@ def test_mujoco_and_pinocchio_agree_on_mass_gravity_and_jacobian(name) -> None:
     assert np.all(worst < 1e-9), worst
 
 
-def test_a_drawn_plant_is_the_same_robot_in_both_engines(lwr) -> None:
-    """The model error scales MuJoCo's bodies and Pinocchio's inertias alike (the felt checks rely on it)."""
+def test_a_drawn_plant_is_the_same_robot_in_both_engines() -> None:
+    """The model error scales MuJoCo's bodies and Pinocchio's inertias alike (the felt checks rely on it); on an
+    LWR4+ with a rotor inertia, each joint's different (its own is 0), so that the rotor inertia's draw counts."""
+    lwr = qpnso.load_robot("lwr4p", armature=np.linspace(0.02, 0.14, 7))
     params = PlantParameters.draw(lwr, ModelMismatch(mass=0.2, friction=0.1, armature=0.3, torque_offset=0.5, seed=3))
     assert not np.allclose(params.mass_scale, 1.0) and not np.allclose(params.armature, lwr.model.armature)
     plant, model = Plant(lwr, params), params.pinocchio_model(lwr)

@@ -254,6 +254,21 @@ def test_bad_arguments_are_named(tmp_path):
     assert StudyOptions.from_dict({"trials": "5", "mass_shares": "0.2,0.8"}).mass_shares == (0.2, 0.8)
 
 
+def test_armature_option_is_a_rotor_inertia() -> None:
+    """``armature_kgm2``: a number (kg·m², >= 0; the command line's string too) sets that rotor inertia on every
+    joint of the workers' robot, None or "none" keeps the model's; a negative one is refused by name."""
+    assert StudyOptions().armature_kgm2 is None
+    assert StudyOptions.from_dict({"armature_kgm2": "none"}).armature_kgm2 is None
+    opts = StudyOptions.from_dict({"armature_kgm2": "0.03"})
+    assert opts.armature_kgm2 == 0.03
+    assert np.array_equal(
+        workbench(opts.robot, opts.compile, opts.armature_kgm2).robot.model.armature, np.full(7, 0.03)
+    )
+    for bad in ("-0.1", "x"):
+        with pytest.raises(ConfigError, match="armature_kgm2"):
+            StudyOptions.from_dict({"armature_kgm2": bad})
+
+
 def test_dask_local_cluster_matches_local_run(tmp_path):
     distributed = pytest.importorskip("distributed")
     local = run_study("workspace", tmp_path / "local", n=4, seed=9, workers=1)

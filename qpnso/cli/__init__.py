@@ -181,10 +181,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration-scale", type=float, default=None, help="elbow: run only this fraction of each path")
     p.add_argument("--no-model-error", action="store_true", help="the plant is the controller's model exactly")
     p.add_argument(
-        "--armature-scale",
+        "--armature-kgm2",
         type=float,
         default=None,
-        help="the robot's rotor inertias times this, controller and plant alike (0: none; default 1)",
+        help="the rotor inertia (kg·m², >= 0) on every joint, controller and plant alike (default: the model's)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None, help="processes (default: every core)")

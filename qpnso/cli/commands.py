@@ -415,8 +415,8 @@ def clearance_cells(m: dict) -> str:
 
 # ---------------------------------------------------------------- experiment
 EXPERIMENT_FLAGS = {
-    "mass-friction": ("subjects", "orders", "reps", "moves", "armature_scale"),
-    "elbow": ("subjects", "trials", "duration_scale", "armature_scale"),
+    "mass-friction": ("subjects", "orders", "reps", "moves", "armature_kgm2"),
+    "elbow": ("subjects", "trials", "duration_scale", "armature_kgm2"),
 }
 """The flags each experiment takes (the others are refused by name)."""
 
@@ -429,7 +429,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
     output_path(args.out, "--out", folder=True)
     options: dict[str, Any] = {}
-    for flag in ("subjects", "orders", "reps", "moves", "trials", "duration_scale", "armature_scale"):
+    for flag in ("subjects", "orders", "reps", "moves", "trials", "duration_scale", "armature_kgm2"):
         value = getattr(args, flag)
         if value is None:
             continue

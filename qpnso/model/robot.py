@@ -22,6 +22,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpnso.errors import (
+    ConfigError,
     FrameNotFoundError,
     InputError,
     JointLimitError,
@@ -407,11 +408,24 @@ def _default_friction(name: str, model: pin.Model) -> JointFriction:
     return friction_from_lists(tau, [default["beta_s_per_rad"][0]] * model.nv, model.nv)
 
 
-def load_robot_with_armature_scale(name_or_path: str | Path, scale: float) -> Robot:
-    """:func:`load_robot` with the model's rotor inertias (``models/armature.json``) times ``scale`` (0: none;
-    1: the robot as shipped, loaded once)."""
+def load_robot_with_armature(name_or_path: str | Path, armature_kgm2: float | None) -> Robot:
+    """:func:`load_robot` with the rotor inertia ``armature_kgm2`` (kg·m², >= 0) on every joint, or with the
+    model's own (``models/armature.json``) when it is None; :class:`ConfigError` for any other value."""
+    value = checked_armature_kgm2(armature_kgm2)
     robot = load_robot(name_or_path)
-    return robot if scale == 1.0 else load_robot(name_or_path, armature=robot.model.armature * scale)
+    return robot if value is None else load_robot(name_or_path, armature=np.full(robot.nq, value))
+
+
+def checked_armature_kgm2(value: object, name: str = "armature_kgm2") -> float | None:
+    """``value`` as one rotor inertia for every joint (kg·m², a finite number >= 0), None kept (the model's
+    own); :class:`ConfigError` naming ``name`` otherwise."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise ConfigError(f"{name} must be a rotor inertia in kg·m² (a number >= 0) or None, got {value!r}")
+    if not (math.isfinite(value) and value >= 0):
+        raise ConfigError(f"{name} must be a finite rotor inertia >= 0 kg·m², got {value!r}")
+    return float(value)
 
 
 def _armature(name: str, model: pin.Model) -> np.ndarray:

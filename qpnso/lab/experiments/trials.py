@@ -11,7 +11,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from qpnso.errors import ConfigError, QpnsoError
+from qpnso.errors import QpnsoError
 from qpnso.lab.parallel import job_rng
 from qpnso.lab.plant import ModelMismatch
 from qpnso.lab.surgeon import Subject
@@ -60,20 +60,22 @@ def model_error(seed: int, values: dict[str, float] | None = None) -> ModelMisma
 @dataclass(frozen=True)
 class PlantOptions:
     """What each experiment sets of its plant and robot: ``model_error`` (empty: :data:`EXPERIMENT_MODEL_ERROR`)
-    and ``armature_scale``, the model's rotor inertias times this, in the controller and the plant alike."""
+    and ``armature_kgm2``, the rotor inertia (kg·m², >= 0) on every joint, in the controller and the plant
+    alike (None: the model's own, ``models/armature.json``)."""
 
     model_error: dict[str, float] = field(default_factory=dict)
-    armature_scale: float = 1.0
+    armature_kgm2: float | None = None
 
     def __post_init__(self) -> None:
-        if not self.armature_scale >= 0:
-            raise ConfigError(f"armature_scale must be >= 0, got {self.armature_scale}")
+        from qpnso.model.robot import checked_armature_kgm2
+
+        checked_armature_kgm2(self.armature_kgm2)
 
     def load_robot(self, name: str) -> "Robot":
-        """Robot ``name`` with the rotor inertias scaled."""
-        from qpnso.model.robot import load_robot_with_armature_scale
+        """Robot ``name`` with the rotor inertia ``armature_kgm2``."""
+        from qpnso.model.robot import load_robot_with_armature
 
-        return load_robot_with_armature_scale(name, self.armature_scale)
+        return load_robot_with_armature(name, self.armature_kgm2)
 
     def simulation(self, seed: int, index: int, person: Subject) -> "SimulationConfig":
         """Job ``index``'s simulation: ``person`` at the tool, the experiment's plant draw, the job's force noise."""

@@ -23,7 +23,7 @@ SCENARIO_JOBS = tuple((sc, st) for sc in ("A", "B") for st in ("damped", "fixed"
 
 
 def _start_curve(index: int, seed: int, opts: StudyOptions) -> tuple[SelfMotionCurve, int, np.random.Generator]:
-    bench = workbench(opts.robot, opts.compile, opts.armature_scale)
+    bench = workbench(opts.robot, opts.compile, opts.armature_kgm2)
     rng = job_rng(seed, index)
     q0, rejected = sample_start(bench.robot, rng, opts.singular_threshold)
     return SelfMotionCurve(bench, q0, math.radians(opts.grid_step_deg)), rejected, rng

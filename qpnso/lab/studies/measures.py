@@ -15,7 +15,7 @@ import numpy as np
 
 from qpnso.model.codegen import FastFunction
 from qpnso.model.costs import CostModel, principal_masses, smooth_coulomb
-from qpnso.model.robot import Robot, load_robot_with_armature_scale
+from qpnso.model.robot import Robot, load_robot_with_armature
 
 
 # --------------------------------------------------------- measures along q
@@ -66,11 +66,11 @@ class Measures:
 
 
 class Workbench:
-    """Per-worker state: the robot (its rotor inertia scaled by ``armature_scale``: 0 takes it out), its
-    normalised cost model and the measure functions."""
+    """Per-worker state: the robot (rotor inertia ``armature_kgm2`` kg·m² on every joint; None: the model's),
+    its normalised cost model and the measure functions."""
 
-    def __init__(self, robot_name: str = "lwr4p", compile: str = "off", armature_scale: float = 1.0) -> None:
-        self.robot: Robot = load_robot_with_armature_scale(robot_name, armature_scale)
+    def __init__(self, robot_name: str = "lwr4p", compile: str = "off", armature_kgm2: float | None = None) -> None:
+        self.robot: Robot = load_robot_with_armature(robot_name, armature_kgm2)
         self.cost = CostModel(self.robot, compile=compile)
         self._fn = curve_function(self.cost)
         self._one = FastFunction(self._fn, compile)
@@ -99,14 +99,14 @@ class Workbench:
         return self.robot.friction.tau_max
 
 
-_BENCHES: dict[tuple[str, str, float], Workbench] = {}
+_BENCHES: dict[tuple[str, str, float | None], Workbench] = {}
 
 
-def workbench(robot: str = "lwr4p", compile: str = "off", armature_scale: float = 1.0) -> Workbench:
+def workbench(robot: str = "lwr4p", compile: str = "off", armature_kgm2: float | None = None) -> Workbench:
     """The worker's :class:`Workbench` (built once per process)."""
-    key = (robot, compile, armature_scale)
+    key = (robot, compile, armature_kgm2)
     if key not in _BENCHES:
-        _BENCHES[key] = Workbench(robot, compile, armature_scale)
+        _BENCHES[key] = Workbench(robot, compile, armature_kgm2)
     return _BENCHES[key]
 
 

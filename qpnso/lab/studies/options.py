@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any, Sequence
 
 from qpnso.errors import ConfigError
+from qpnso.model.robot import checked_armature_kgm2
 
 
 # ------------------------------------------------------------------ options
@@ -19,7 +20,8 @@ class StudyOptions:
     ``trials``, ``friction_sd``: uncertainty trials per pose and relative sd of
     ``tau_max``; ``duration_scale``: fraction of the scenario paths to run;
     ``compile``: CasADi evaluation mode of the workers (:mod:`qpnso.model.codegen`);
-    ``armature_scale``: the model's rotor inertias (``models/armature.json``) times this (0: none).
+    ``armature_kgm2``: the rotor inertia (kg·m², >= 0) on every joint, None: the model's own
+    (``models/armature.json``).
     """
 
     robot: str = "lwr4p"
@@ -30,7 +32,7 @@ class StudyOptions:
     friction_sd: float = 0.10
     duration_scale: float = 1.0
     compile: str = "off"
-    armature_scale: float = 1.0
+    armature_kgm2: float | None = None
 
     def __post_init__(self) -> None:
         if not 0 < self.grid_step_deg <= 30:
@@ -41,8 +43,7 @@ class StudyOptions:
             raise ConfigError(f"mass_shares must be weights in [0, 1], got {self.mass_shares}")
         if self.trials < 1 or not 0 <= self.friction_sd < 1:
             raise ConfigError(f"need trials >= 1 and 0 <= friction_sd < 1, got {self.trials}, {self.friction_sd}")
-        if not self.armature_scale >= 0:
-            raise ConfigError(f"armature_scale must be >= 0, got {self.armature_scale}")
+        checked_armature_kgm2(self.armature_kgm2)
         if not 0 < self.duration_scale <= 1:
             raise ConfigError(f"duration_scale must be in (0, 1], got {self.duration_scale}")
 
@@ -64,8 +65,11 @@ class StudyOptions:
 
 
 def _coerce(key: str, value: Any, default: Any) -> Any:
-    """``value`` converted to the type of the option's default (CLI strings accepted)."""
+    """``value`` converted to the type of the option's default (CLI strings accepted); an option whose default
+    is None (``armature_kgm2``) takes a number, or None / ``"none"``."""
     try:
+        if default is None:
+            return None if value is None or str(value).lower() == "none" else float(value)
         if isinstance(default, tuple):
             items = value.split(",") if isinstance(value, str) else value
             return tuple(float(x) for x in items)

@@ -41,7 +41,7 @@ class Study:
     fixed_n: int | None = None
 
 
-_POSE_OPTIONS = ("robot", "grid_step_deg", "singular_threshold", "armature_scale")
+_POSE_OPTIONS = ("robot", "grid_step_deg", "singular_threshold", "armature_kgm2")
 STUDIES: dict[str, Study] = {
     "workspace": Study(workspace_job, 1000, _POSE_OPTIONS, workspace_summary),
     "tradeoff": Study(tradeoff_job, 1000, (*_POSE_OPTIONS, "mass_shares"), tradeoff_summary),
@@ -66,7 +66,7 @@ def _run_job(name: str, options: dict[str, Any], index: int, seed: int) -> dict:
 def _init_worker(options: dict[str, Any]) -> None:
     """Process-pool initialiser: build the worker's :class:`Workbench` once."""
     opts = StudyOptions.from_dict(options)
-    workbench(opts.robot, opts.compile, opts.armature_scale)
+    workbench(opts.robot, opts.compile, opts.armature_kgm2)
 
 
 def run_study(

@@ -120,7 +120,10 @@ def test_the_hold_scenario_is_a_hold() -> None:
     sc = load_scenario("hold")
     motion = sc.motion()
     assert motion.segments == () and motion.duration == pytest.approx(6.0)
-    assert np.ptp(motion.trajectory.position, axis=0).max() == 0.0 and sc.surgeon == {"tremor_rms_m": 0.0}
+    assert np.ptp(motion.trajectory.position, axis=0).max() == 0.0 and sc.surgeon == {
+        "tremor_rms_m": 0.0,
+        "correction_rate": 0.0,
+    }
 
 
 # ------------------------------------------------------------------ smoothness per segment

@@ -165,7 +165,8 @@ def make_plant(robot: Robot, cfg: SimulationConfig, dt: float) -> Plant:
 
 class HandOnTool:
     """The surgeon's hand on the plant's tool: every plant step, the arm impedance towards the intended
-    motion (sampled once for the whole run) moved by the voluntary correction (:meth:`Subject.correct`) and the tremor's force (:class:`Tremor`, seeded by ``tremor_seed``;
+    motion (sampled once for the whole run) moved by the voluntary correction (:meth:`Subject.correct`) and the
+    tremor's force (:class:`Tremor`, seeded by ``tremor_seed``;
     None: no tremor) act on the hand body; the controller's torque is held over the tick.  The plant must be at
     its start (:meth:`Plant.reset`)."""
 

@@ -1,11 +1,11 @@
-"""Where the data shipped with qpnso are: the robot descriptions, the scenario files and the solver
-benchmark's committed problem set.
+"""Where the data shipped with qpnso are: the robot descriptions, the scenario files, the solver
+benchmark's committed problem set and the experiments' pre-registration.
 
-In the source tree they are folders at its top (``models/``, ``examples/scenarios/``, ``solvers/problems/``);
-a wheel carries them inside the package, as ``qpnso/_models/``, ``qpnso/_scenarios/``,
-``qpnso/_solver_problems/`` (``setup.py`` maps the folders onto these subpackages, with the files of
-:data:`SHIPPED`).  :func:`shipped_dir` finds them either way: an installed wheel, a source tree on
-``sys.path`` or an editable install.
+In the source tree they are folders at its top (``models/``, ``examples/scenarios/``, ``solvers/problems/``,
+``docs/preregistration/``); a wheel carries them inside the package, as ``qpnso/_models/``,
+``qpnso/_scenarios/``, ``qpnso/_solver_problems/``, ``qpnso/_preregistration/`` (``setup.py`` maps the folders
+onto these subpackages, with the files of :data:`SHIPPED`).  :func:`shipped_dir` finds them either way: an
+installed wheel, a source tree on ``sys.path`` or an editable install.
 
 This module uses the standard library only: ``setup.py`` reads :data:`SHIPPED` from it before qpnso's
 dependencies are installed.
@@ -19,6 +19,7 @@ SHIPPED: dict[str, tuple[str, tuple[str, ...]]] = {
     "models": ("models", ("*.urdf", "*.json", "README.md")),
     "scenarios": ("examples/scenarios", ("*.toml",)),
     "solver_problems": ("solvers/problems", ("quick.npz",)),
+    "preregistration": ("docs/preregistration", ("*.toml",)),
 }
 """name: (its folder in the source tree, relative to the top; the files of it a wheel carries).
 ``solvers/problems/full.npz`` is recorded on demand, not committed, and not shipped."""

@@ -172,12 +172,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("experiment", help="a paper's user experiment with virtual surgeons (CSV, stats, report)")
-    p.add_argument("name", choices=["mass-friction", "elbow"])
+    p.add_argument("name", choices=["mass-friction", "elbow", "preregister"])
     p.add_argument("--subjects", type=int, default=None, help="virtual surgeons (default: the paper's, 8 or 3)")
     p.add_argument("--orders", type=int, default=None, help="mass-friction: random target orders (default 5)")
     p.add_argument("--reps", type=int, default=None, help="mass-friction: repetitions of each order (default 3)")
     p.add_argument("--moves", type=int, default=None, help="mass-friction: targets per trial (default 6)")
     p.add_argument("--trials", type=int, default=None, help="elbow: trials per subject (default 3)")
+    p.add_argument(
+        "--quiet-trials", type=int, default=None, help="elbow: trials per subject with the tremor off (default 1)"
+    )
+    p.add_argument(
+        "--strategies",
+        default=None,
+        help="mass-friction: comma-separated strategies and controls to run (default all; 'damped' required)",
+    )
+    p.add_argument(
+        "--control-reps", type=int, default=None, help="mass-friction: repetitions of the controls and ablation (1)"
+    )
     p.add_argument("--duration-scale", type=float, default=None, help="elbow: run only this fraction of each path")
     p.add_argument("--no-model-error", action="store_true", help="the plant is the controller's model exactly")
     p.add_argument(

@@ -415,8 +415,9 @@ def clearance_cells(m: dict) -> str:
 
 # ---------------------------------------------------------------- experiment
 EXPERIMENT_FLAGS = {
-    "mass-friction": ("subjects", "orders", "reps", "moves", "armature_kgm2"),
-    "elbow": ("subjects", "trials", "duration_scale", "armature_kgm2"),
+    "mass-friction": ("subjects", "orders", "reps", "moves", "armature_kgm2", "strategies", "control_reps"),
+    "elbow": ("subjects", "trials", "quiet_trials", "duration_scale", "armature_kgm2"),
+    "preregister": (),
 }
 """The flags each experiment takes (the others are refused by name)."""
 
@@ -427,15 +428,23 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
     from qpnso.lab.experiments import run_experiment
 
-    output_path(args.out, "--out", folder=True)
     options: dict[str, Any] = {}
-    for flag in ("subjects", "orders", "reps", "moves", "trials", "duration_scale", "armature_kgm2"):
+    for flag in sorted({f for flags in EXPERIMENT_FLAGS.values() for f in flags}):
         value = getattr(args, flag)
         if value is None:
             continue
         if flag not in EXPERIMENT_FLAGS[args.name]:
             raise argparse.ArgumentTypeError(f"--{flag.replace('_', '-')} does not apply to experiment {args.name}")
         options[flag] = value
+    if args.name == "preregister":
+        return preregister(Path(args.out))
+    output_path(args.out, "--out", folder=True)
+    if "strategies" in options:
+        from qpnso.lab.experiments.mass_friction import CONTROLS
+
+        names = tuple(n.strip() for n in options.pop("strategies").split(",") if n.strip())
+        options["strategies"] = tuple(n for n in names if n not in CONTROLS)
+        options["controls"] = tuple(n for n in names if n in CONTROLS)
     if args.no_model_error:
         options["model_error"] = {"mass": 0.0, "friction": 0.0, "armature": 0.0, "torque_offset": 0.0}
     run_experiment(
@@ -448,6 +457,19 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     print((Path(args.out) / "report.md").read_text(), end="")
+    return 0
+
+
+def preregister(path: Any) -> int:
+    """Write the mass/friction experiment's pre-registration (its work areas, from the model alone) to ``path``
+    (a :class:`pathlib.Path`)."""
+    from qpnso.lab.experiments.work_areas import preregistration
+
+    output_path(str(path), "--out")
+    text = preregistration()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    print(text, end="")
     return 0
 
 

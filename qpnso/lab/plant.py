@@ -76,12 +76,16 @@ class ModelMismatch:
     armature: float = 0.0
     torque_offset: float = 0.0  # N·m
     seed: int = 0
+    mass_factor: float = 1.0  # every link's mass and inertia times this before the draw (a known change of the
+    # plant, e.g. the mass/friction experiment's positive control; the controller's model must be scaled alike)
 
     def __post_init__(self) -> None:
         check(self)
         for name in ("mass", "friction", "armature", "torque_offset"):
             if getattr(self, name) < 0:
                 raise out_of_range(self, name, "must be >= 0")
+        if not self.mass_factor > 0:
+            raise out_of_range(self, "mass_factor", "must be > 0")
 
     @classmethod
     def from_dict(cls, values: dict, where: str = "") -> "ModelMismatch":
@@ -91,7 +95,7 @@ class ModelMismatch:
     @property
     def none(self) -> bool:
         """True when the plant is the nominal model."""
-        return self.mass == self.friction == self.armature == self.torque_offset == 0.0
+        return self.mass == self.friction == self.armature == self.torque_offset == 0.0 and self.mass_factor == 1.0
 
 
 @dataclass(frozen=True)
@@ -113,7 +117,7 @@ class PlantParameters:
         rng = np.random.default_rng(e.seed)
         factor = lambda sd: np.maximum(0.1, 1.0 + sd * rng.standard_normal(n))  # noqa: E731
         return cls(
-            mass_scale=factor(e.mass),
+            mass_scale=e.mass_factor * factor(e.mass),
             tau_coulomb=robot.friction.tau_max * factor(e.friction),
             damping=np.array(robot.model.damping, dtype=float),
             armature=np.array(robot.model.armature, dtype=float) * factor(e.armature),

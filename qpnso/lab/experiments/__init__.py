@@ -1,8 +1,10 @@
 """The papers' user experiments, with virtual surgeons on the MuJoCo plant (docs/method.md §9).
 
-* ``mass-friction`` (:mod:`.mass_friction`): point-to-point moves between six targets, four strategies and
-  an ablation; work per metre normalised per subject [M 24], the orthogonal moment (its Fig. 10b);
-  Kolmogorov–Smirnov, Kruskal–Wallis, Dunn–Šidák (its Table I).
+* ``mass-friction`` (:mod:`.mass_friction`): point-to-point moves between six targets in pre-registered work
+  areas (:mod:`.work_areas`), the paper's four strategies, qpnso's ``qp``, an ablation and two controls; work
+  per metre under both readings normalised per subject [M 24], the orthogonal moment (its Fig. 10b);
+  Kolmogorov–Smirnov, Kruskal–Wallis, Dunn–Šidák (its Table I); three-valued verdicts
+  (:mod:`.mass_friction_analysis`).
 * ``elbow`` (:mod:`.elbow`): scenarios A and B × DP, FOP, NSO and qp; Δ, Δc, S per segment (its Fig. 6 and
   Table I); Kruskal–Wallis and Bartlett.
 
@@ -24,7 +26,6 @@ from typing import Any
 from qpnso.errors import ConfigError
 from qpnso.lab.experiments.elbow import STRATEGIES as ELBOW_STRATEGIES
 from qpnso.lab.experiments.elbow import ElbowOptions, elbow_job
-from qpnso.lab.experiments.mass_friction import STRATEGIES as MF_STRATEGIES
 from qpnso.lab.experiments.mass_friction import MassFrictionOptions, mass_friction_job, work_area_summary
 from qpnso.lab.parallel import RunSpec, run_jobs
 
@@ -68,20 +69,23 @@ def run_experiment(
     )
     header = f"Experiment {name}, seed {seed}, {opts.n_jobs} trials, options {asdict(opts)}"
     if isinstance(opts, MassFrictionOptions):
-        stats = analysis.mass_friction_stats(rows, work_area_summary(opts))
-        report = analysis.mass_friction_report(stats, header)
-        panels = [
-            ("normalised work", analysis.groups(rows, "work_normalised", MF_STRATEGIES)),
-            ("normalised orthogonal moment", analysis.groups(rows, "orthogonal_torque_normalised", MF_STRATEGIES)),
-        ]
+        from qpnso.lab.experiments import mass_friction_analysis as mfa
+
+        stats = mfa.mass_friction_stats(rows, work_area_summary(opts), opts.control_reps)
+        report = mfa.mass_friction_report(stats, header)
+        names = opts.strategies + opts.controls
+        panels = [(title, analysis.groups(rows, metric, names)) for metric, title in mfa.METRICS.items()]
     else:
         stats = analysis.elbow_stats(rows)
         report = analysis.elbow_report(stats, header)
         panels = [
-            ("A: Δ (deg)", analysis.groups(rows, "elbow_mobility_deg", ELBOW_STRATEGIES, scenario="A")),
-            ("B: Δc (deg)", analysis.groups(rows, "constraint_proximity_deg", ELBOW_STRATEGIES, scenario="B")),
-            ("A: S per segment", analysis.elbow_segments(rows, "A")),
-            ("B: S per segment", analysis.elbow_segments(rows, "B")),
+            ("A: Δ (deg)", analysis.groups(rows, "elbow_mobility_deg", ELBOW_STRATEGIES, scenario="A", tremor="on")),
+            (
+                "B: Δc (deg)",
+                analysis.groups(rows, "constraint_proximity_deg", ELBOW_STRATEGIES, scenario="B", tremor="on"),
+            ),
+            ("A: S per segment", analysis.elbow_segments([r for r in rows if r["tremor"] == "on"], "A")),
+            ("B: S per segment", analysis.elbow_segments([r for r in rows if r["tremor"] == "on"], "B")),
         ]
     stats = {
         "experiment": name,

@@ -15,9 +15,6 @@ from qpnso.errors import ConfigError
 from qpnso.lab.experiments import statistics as st
 from qpnso.lab.experiments.elbow import SCENARIOS
 from qpnso.lab.experiments.elbow import STRATEGIES as ELBOW_STRATEGIES
-from qpnso.lab.experiments.mass_friction import PAPER_STRATEGIES
-from qpnso.lab.experiments.mass_friction import STRATEGIES as MF_STRATEGIES
-from qpnso.lab.metrics import relative_work
 
 
 def groups(rows: list[dict], key: str, names, **where: Any) -> dict[str, np.ndarray]:
@@ -26,9 +23,10 @@ def groups(rows: list[dict], key: str, names, **where: Any) -> dict[str, np.ndar
     return {n: np.array([r[key] for r in chosen if r["strategy"] == n], dtype=float) for n in names}
 
 
-def normalise_per_subject(rows: list[dict], key: str, out_key: str) -> None:
-    """[M 24] per subject (:func:`qpnso.lab.metrics.relative_work`): each trial's ``key`` over the largest
-    per-strategy mean of that subject's trials, written as ``out_key`` (NaN for a trial without a value)."""
+def normalise_per_subject(rows: list[dict], key: str, out_key: str, reference=None) -> None:
+    """[M 24] per subject (as :func:`qpnso.lab.metrics.relative_work`): each trial's ``key`` over the largest
+    per-strategy mean of that subject's trials among the strategies ``reference`` (default: all), written as
+    ``out_key`` (NaN for a trial without a value)."""
     for r in rows:
         r[out_key] = math.nan
     for s in sorted({r["subject"] for r in rows}):
@@ -36,22 +34,42 @@ def normalise_per_subject(rows: list[dict], key: str, out_key: str) -> None:
         by_strategy: dict[str, list[dict]] = {}
         for r in mine:
             by_strategy.setdefault(r["strategy"], []).append(r)
-        if not by_strategy:
+        ref = {k: v for k, v in by_strategy.items() if reference is None or k in reference}
+        if not ref:
             continue
-        scaled = relative_work({k: np.array([r[key] for r in v]) for k, v in by_strategy.items()})
-        for name, trials in by_strategy.items():
-            for r, value in zip(trials, scaled[name]):
-                r[out_key] = float(value)
+        top = max(float(np.mean([r[key] for r in v])) for v in ref.values())  # [M 24]: the largest mean
+        if not top > 0:
+            continue
+        for trials in by_strategy.values():
+            for r in trials:
+                r[out_key] = float(r[key] / top)
 
 
-def _verdict(ok: bool, claim: str, measured: str, why_not: str = "") -> dict[str, str]:
-    out = {"claim": claim, "verdict": "reproduced" if ok else "not reproduced", "measured": measured}
-    if not ok and why_not:
-        out["why"] = why_not
-    return out
+def three_valued(claim: str, judged: dict[str, bool], measured: str, blockers: list[str], why_not: str = "") -> dict:
+    """A verdict (issue 32): ``untestable`` with the reasons in ``blockers`` (those not empty), or when the
+    readings in ``judged`` (name → the claim holds under it) disagree; else ``reproduced`` or ``not reproduced``
+    (then with ``why_not``)."""
+    out = {"claim": claim, "measured": measured}
+    reasons = [b for b in blockers if b]
+    if not reasons and len(set(judged.values())) > 1:
+        reasons = ["the two readings disagree (" + ", ".join(f"{k}: {v}" for k, v in judged.items()) + ")"]
+    if reasons:
+        return {**out, "verdict": "untestable", "why": "; ".join(reasons)}
+    ok = next(iter(judged.values()))
+    return {
+        **out,
+        "verdict": "reproduced" if ok else "not reproduced",
+        **({} if ok or not why_not else {"why": why_not}),
+    }
 
 
-def _compare(g: dict[str, np.ndarray]) -> dict[str, Any]:
+MECHANISM_MIN_DP_RANGE_DEG = 20.0
+"""deg: [E] B's contrast needs an elbow that drifts: DP's median Δ in scenario A at least this (issue 32)."""
+SMOOTHNESS_THRESHOLD = 500.0
+"""[E 14]'s S per segment the elbow paper's claim E3 puts every smooth strategy under."""
+
+
+def compare(g: dict[str, np.ndarray]) -> dict[str, Any]:
     """Spread per group, Kolmogorov–Smirnov normality, Kruskal–Wallis and Dunn–Šidák."""
     return {
         "spread": {k: st.spread(v) for k, v in g.items()},
@@ -59,72 +77,6 @@ def _compare(g: dict[str, np.ndarray]) -> dict[str, Any]:
         "kruskal": st.kruskal(g),
         "dunn_sidak_p": st.dunn_sidak(g),
     }
-
-
-def mass_friction_stats(rows: list[dict], area: dict[str, float] | None = None) -> dict[str, Any]:
-    """Statistics and verdicts of the mass/friction experiment (its four strategies, then with the ablation);
-    ``area``: the work area's postures and what they feel (:func:`~.mass_friction.work_area_summary`)."""
-    normalise_per_subject(rows, "work_per_metre", "work_normalised")
-    normalise_per_subject(rows, "orthogonal_torque_mean_Nm", "orthogonal_torque_normalised")
-    out: dict[str, Any] = {"trials": len(rows), "stopped": _stopped(rows, MF_STRATEGIES), "work_area": area or {}}
-    for key in ("work_normalised", "orthogonal_torque_normalised"):
-        out[key] = _compare(groups(rows, key, PAPER_STRATEGIES))
-        out[key]["with_ablation"] = _compare(groups(rows, key, MF_STRATEGIES))
-    for key in ("mass_mean_kg", "mass_model_mean_kg", "friction_force_mean_N", "friction_model_mean_N"):
-        out[key] = {k: st.spread(v) for k, v in groups(rows, key, MF_STRATEGIES).items()}
-    out["verdicts"] = mass_friction_verdicts(out)
-    return out
-
-
-def _lower_and_significant(s: dict[str, Any], low: tuple[str, ...], high: tuple[str, ...], alpha: float) -> bool:
-    med = {k: v["median"] for k, v in s["spread"].items()}
-    p = s["dunn_sidak_p"]
-    return s["kruskal"]["p"] < alpha and all(p[a][b] < alpha and med[a] < med[b] for a in low for b in high)
-
-
-def mass_friction_verdicts(s: dict[str, Any]) -> list[dict[str, str]]:
-    """The paper's three claims on its Table I and Fig. 10, judged at its 0.01 level, and the ablation."""
-    work, torque = s["work_normalised"], s["orthogonal_torque_normalised"]
-    med = lambda block: ", ".join(f"{k} {v['median']:.3f}" for k, v in block["spread"].items())  # noqa: E731
-    area = s.get("work_area") or {}
-    premise = (
-        f"; felt mass (model) at the fixed posture {area['mass_fixed_kg']:.2f} kg, elbow up "
-        f"{area['mass_elbow_up_kg']:.2f} kg"
-        if area
-        else ""
-    )
-    p_fa = work["dunn_sidak_p"]["fixed"]["active"]
-    abl = work["with_ablation"]
-    p_abl = abl["dunn_sidak_p"]["active"]["qp-zero"]
-    return [
-        _verdict(
-            _lower_and_significant(work, ("fixed", "active"), ("damped", "elbow-up"), 0.01),
-            "M1: fixed and active need significantly less work than damped and elbow-up "
-            "(Kruskal–Wallis p < 0.01, Dunn–Šidák at 0.01)",
-            f"normalised work medians: {med(work)}; Kruskal–Wallis p = {work['kruskal']['p']:.3g}{premise}",
-            "see the Dunn–Šidák table: at least one of the four pairs is not significant or not lower",
-        ),
-        _verdict(
-            _lower_and_significant(torque, ("fixed", "active"), ("damped", "elbow-up"), 0.01),
-            "M2: the moment orthogonal to the motion is significantly higher with damped and elbow-up than with "
-            "fixed and active",
-            f"normalised orthogonal moment medians: {med(torque)}; Kruskal–Wallis p = {torque['kruskal']['p']:.3g}",
-            "see the Dunn–Šidák table of the orthogonal moment",
-        ),
-        _verdict(
-            p_fa >= 0.01,
-            "M3: the fixed pre-optimised posture performs nearly as well as active optimisation (no significant "
-            "difference in work)",
-            f"Dunn–Šidák p(fixed, active) = {p_fa:.3g}",
-            "fixed and active differ at 0.01",
-        ),
-        {
-            "claim": "ablation (ours): active against qp with every cost weight 0 (same start, same ROM rows)",
-            "verdict": "optimisation matters" if p_abl < 0.01 else "no significant effect of the cost",
-            "measured": f"normalised work medians: active {abl['spread']['active']['median']:.3f}, qp-zero "
-            f"{abl['spread']['qp-zero']['median']:.3f}; Dunn–Šidák p = {p_abl:.3g}",
-        },
-    ]
 
 
 def _stopped(rows: list[dict], names) -> dict[str, int]:
@@ -146,11 +98,14 @@ def elbow_segments(rows: list[dict], scenario: str) -> dict[str, np.ndarray]:
     return out
 
 
-def elbow_stats(rows: list[dict]) -> dict[str, Any]:
+def elbow_stats(all_rows: list[dict]) -> dict[str, Any]:
     """Per scenario: spread of Δ, Δc and S (per segment) by strategy; Kruskal–Wallis over the paper's three
-    strategies; Bartlett over them and NSO against each of DP and FOP; verdicts."""
+    strategies; Bartlett over them and NSO against each of DP and FOP (the trials with the tremor on); S per
+    segment with the tremor off and the intended motion's own S; verdicts."""
     paper = ("DP", "FOP", "NSO")
-    out: dict[str, Any] = {"trials": len(rows), "stopped": {}}
+    rows = [r for r in all_rows if r.get("tremor", "on") == "on"]
+    quiet = [r for r in all_rows if r.get("tremor", "on") == "off"]
+    out: dict[str, Any] = {"trials": len(rows), "quiet_trials": len(quiet), "stopped": {}}
     for sc in SCENARIOS:
         block: dict[str, Any] = {}
         out["stopped"][sc] = _stopped([r for r in rows if r["scenario"] == sc], ELBOW_STRATEGIES)
@@ -158,6 +113,8 @@ def elbow_stats(rows: list[dict]) -> dict[str, Any]:
             g = groups(rows, key, ELBOW_STRATEGIES, scenario=sc)
             block[key] = _elbow_tests(g, paper)
         block["smoothness_per_segment"] = _elbow_tests(elbow_segments(rows, sc), paper)
+        block["smoothness_quiet"] = {k: st.spread(v) for k, v in elbow_segments(quiet, sc).items()}
+        block["intended_smoothness"] = st.spread([r["intended_smoothness"] for r in all_rows if r["scenario"] == sc])
         out[sc] = block
     out["verdicts"] = elbow_verdicts(out, rows)
     return out
@@ -181,7 +138,9 @@ def _elbow_tests(g: dict[str, np.ndarray], paper: tuple[str, ...]) -> dict[str, 
 
 
 def elbow_verdicts(s: dict[str, Any], rows: list[dict]) -> list[dict[str, str]]:
-    """The elbow paper's three claims (§III, Fig. 6, Table I), judged by its own thresholds."""
+    """The elbow paper's three claims (§III, Fig. 6, Table I), judged by its own thresholds, three-valued: E2 is
+    untestable when DP's elbow does not drift in A (:data:`MECHANISM_MIN_DP_RANGE_DEG`), E3 when the noise-free
+    intended motion's own S is not under :data:`SMOOTHNESS_THRESHOLD`."""
     a_delta = s["A"]["elbow_mobility_deg"]
     b_prox = s["B"]["constraint_proximity_deg"]
     med = lambda block, k: block["spread"][k]["median"]  # noqa: E731
@@ -196,39 +155,63 @@ def elbow_verdicts(s: dict[str, Any], rows: list[dict]) -> list[dict[str, str]]:
     }
     bart_dp, bart_fop = b_prox["bartlett_NSO_DP"]["p"], b_prox["bartlett_NSO_FOP"]["p"]
     smooth = {sc: {k: v["median"] for k, v in s[sc]["smoothness_per_segment"]["spread"].items()} for sc in SCENARIOS}
+    quiet = {sc: {k: v["median"] for k, v in s[sc]["smoothness_quiet"].items()} for sc in SCENARIOS}
+    intended = {sc: s[sc]["intended_smoothness"]["median"] for sc in SCENARIOS}
     e3 = (
-        all(smooth[sc][k] < 500 for sc in SCENARIOS for k in ("FOP", "NSO"))
-        and smooth["A"]["DP"] < 500
+        all(smooth[sc][k] < SMOOTHNESS_THRESHOLD for sc in SCENARIOS for k in ("FOP", "NSO"))
+        and smooth["A"]["DP"] < SMOOTHNESS_THRESHOLD
         and (smooth["B"]["DP"] > 1100)
     )
+    dp_range = med(a_delta, "DP")
+    no_drift = (
+        f"a mechanism the plant does not produce: DP's elbow moves {dp_range:.1f}° in A (< "
+        f"{MECHANISM_MIN_DP_RANGE_DEG:g}°), so B's contrast between DP and NSO cannot arise"
+        if not dp_range >= MECHANISM_MIN_DP_RANGE_DEG
+        else ""
+    )
+    unreachable = "; ".join(
+        f"the noise-free intended motion of {sc} scores S = {v:.0f} per segment (≥ {SMOOTHNESS_THRESHOLD:g}): no "
+        "controller can meet the threshold"
+        for sc, v in intended.items()
+        if not v < SMOOTHNESS_THRESHOLD
+    )
     return [
-        _verdict(
-            med(a_delta, "FOP") < 5 and med(a_delta, "DP") > 20 and med(a_delta, "NSO") > 20 and kw(a_delta) < 0.001,
+        three_valued(
             "E1 (scenario A): FOP's elbow mobility Δ (median < 5°) is significantly lower than DP's and NSO's "
             "(median > 20°; Kruskal–Wallis p < 0.001)",
-            f"Δ medians: DP {med(a_delta, 'DP'):.1f}°, FOP {med(a_delta, 'FOP'):.1f}°, NSO {med(a_delta, 'NSO'):.1f}°"
+            {"Δ": med(a_delta, "FOP") < 5 and dp_range > 20 and med(a_delta, "NSO") > 20 and kw(a_delta) < 0.001},
+            f"Δ medians: DP {dp_range:.1f}°, FOP {med(a_delta, 'FOP'):.1f}°, NSO {med(a_delta, 'NSO'):.1f}°"
             f" (qp {med(a_delta, 'qp'):.1f}°); Kruskal–Wallis p = {kw(a_delta):.3g}",
+            [],
             "a threshold or the test's level is missed (see the figures)",
         ),
-        _verdict(
-            kw(b_prox) > 0.8
-            and bart_dp < 0.05
-            and bart_fop < 0.05
-            and var["NSO"] < min(var["DP"], var["FOP"])
-            and nso_ok,
+        three_valued(
             "E2 (scenario B): Δc medians comparable (Kruskal–Wallis p > 0.8), NSO's variance significantly smaller "
             "than DP's and FOP's (Bartlett p < 0.05), every NSO trial keeps Δc ≥ d_sg = 10°",
+            {
+                "Δc": kw(b_prox) > 0.8
+                and bart_dp < 0.05
+                and bart_fop < 0.05
+                and var["NSO"] < min(var["DP"], var["FOP"])
+                and nso_ok
+            },
             f"Δc medians: DP {med(b_prox, 'DP'):.1f}°, FOP {med(b_prox, 'FOP'):.1f}°, NSO {med(b_prox, 'NSO'):.1f}° "
             f"(qp {med(b_prox, 'qp'):.1f}°); Kruskal–Wallis p = {kw(b_prox):.3g}; Bartlett p NSO–DP = {bart_dp:.3g}, "
             f"NSO–FOP = {bart_fop:.3g}; variances DP {var['DP']:.3g}, FOP {var['FOP']:.3g}, NSO {var['NSO']:.3g} deg²;"
             f" NSO trials with Δc ≥ 10°: {sum(v >= 10 for v in nso_b)}/{len(nso_b)}",
+            [no_drift],
             "a threshold or the test's level is missed (see the figures)",
         ),
-        _verdict(
-            e3,
+        three_valued(
             "E3: S < 500 per segment for every strategy in both scenarios, except DP in scenario B (S > 1100)",
-            "S medians per segment: "
-            + "; ".join(f"{sc}: " + ", ".join(f"{k} {v:.0f}" for k, v in smooth[sc].items()) for sc in SCENARIOS),
+            {"S": e3},
+            "S medians per segment, tremor on: "
+            + "; ".join(f"{sc}: " + ", ".join(f"{k} {v:.0f}" for k, v in smooth[sc].items()) for sc in SCENARIOS)
+            + "; tremor off: "
+            + "; ".join(f"{sc}: " + ", ".join(f"{k} {v:.0f}" for k, v in quiet[sc].items()) for sc in SCENARIOS)
+            + "; the intended motion alone: "
+            + ", ".join(f"{sc} {v:.0f}" for sc, v in intended.items()),
+            [unreachable],
             "a threshold is missed (see the figures)",
         ),
     ]
@@ -240,55 +223,6 @@ def spread_cell(s: dict[str, float], digits: int = 3) -> str:
     return f"{s['median']:.{digits}g} ({s['q1']:.{digits}g}–{s['q3']:.{digits}g})" if s["n"] else "—"
 
 
-def mass_friction_report(s: dict[str, Any], header: str) -> str:
-    """The Markdown report: the work area's premise, spreads, the Table I layout, p-values, felt mass and
-    friction, verdicts."""
-    lines = [
-        header,
-        "",
-        work_area_line(s.get("work_area") or {}),
-        "",
-        "| strategy | normalised work | normalised orthogonal moment | felt mass, plant (kg) | "
-        "felt mass, model (kg) | felt friction, plant (N) | stopped trials |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    w, t = s["work_normalised"]["with_ablation"], s["orthogonal_torque_normalised"]["with_ablation"]
-    for k in MF_STRATEGIES:
-        lines.append(
-            f"| {k} | {spread_cell(w['spread'][k])} | {spread_cell(t['spread'][k])} | "
-            f"{spread_cell(s['mass_mean_kg'][k])} | {spread_cell(s['mass_model_mean_kg'][k])} | "
-            f"{spread_cell(s['friction_force_mean_N'][k])} | {s['stopped'][k]} |"
-        )
-    for key, title in (("work_normalised", "work"), ("orthogonal_torque_normalised", "orthogonal moment")):
-        block = s[key]
-        lines += [
-            "",
-            f"Dunn–Šidák on the normalised {title} (1: significant at 0.01; the layout of [M] Table I); "
-            f"Kruskal–Wallis H = {block['kruskal']['H']:.3g}, p = {block['kruskal']['p']:.3g}; "
-            "Kolmogorov–Smirnov normality p: " + ", ".join(f"{k} {v:.2g}" for k, v in block["normality_ks_p"].items()),
-            "",
-            st.significance_table(block["dunn_sidak_p"]),
-            "",
-            "Šidák-corrected p-values, with the ablation:",
-            "",
-            st.pvalue_table(block["with_ablation"]["dunn_sidak_p"]),
-        ]
-    return "\n".join(lines + ["", verdict_lines(s["verdicts"])]) + "\n"
-
-
-def work_area_line(area: dict[str, float]) -> str:
-    """What the postures feel in the work area (the experiment's premise), one line."""
-    if not area:
-        return ""
-    return (
-        f"Work area (controller's model): the fixed posture is at arm angle {area['fixed_arm_angle_deg']:.1f}° "
-        f"(elbow up: 0°); felt mass {area['mass_fixed_kg']:.2f} kg there against {area['mass_elbow_up_kg']:.2f} kg "
-        f"elbow up, friction force {area['friction_fixed_N']:.1f} N against {area['friction_elbow_up_N']:.1f} N; "
-        f"fixed and elbow-up held by {area['posture_stiffness_Nm_per_rad']:g} N·m/rad with "
-        f"{area['nullspace_damping_Nms_per_rad']:.3g} N·m·s/rad."
-    )
-
-
 def elbow_report(s: dict[str, Any], header: str) -> str:
     """The Markdown report: Δ, Δc, S per segment by scenario and strategy (the layout of [E] Table I), tests,
     verdicts."""
@@ -298,15 +232,17 @@ def elbow_report(s: dict[str, Any], header: str) -> str:
         lines += [
             f"Scenario {sc}:",
             "",
-            "| strategy | Δ (deg) | Δc (deg) | S per segment | stopped trials |",
-            "|---|---|---|---|---|",
+            "| strategy | Δ (deg) | Δc (deg) | S per segment | S per segment, tremor off | stopped trials |",
+            "|---|---|---|---|---|---|",
         ]
         for k in ELBOW_STRATEGIES:
             lines.append(
                 f"| {k} | {spread_cell(b['elbow_mobility_deg']['spread'][k])} | "
                 f"{spread_cell(b['constraint_proximity_deg']['spread'][k])} | "
-                f"{spread_cell(b['smoothness_per_segment']['spread'][k])} | {s['stopped'][sc][k]} |"
+                f"{spread_cell(b['smoothness_per_segment']['spread'][k])} | "
+                f"{spread_cell(b['smoothness_quiet'][k])} | {s['stopped'][sc][k]} |"
             )
+        lines.append(f"\nThe intended motion alone: S per segment {spread_cell(b['intended_smoothness'])}.")
         for key, title in (
             ("elbow_mobility_deg", "Δ"),
             ("constraint_proximity_deg", "Δc"),

@@ -2,40 +2,46 @@
 
 Protocol (the paper's, with what it does not publish stated as ours):
 
-* six targets on a surgical-target-sized dome (:func:`qpnso.lab.surgeon.dome_targets`: 5 cm radius, one at
-  the top, five on a ring; the paper's layout is not published) above the work-area centre, the tool at
-  scenario A's pose (0.65, 0, 0.5) m, rpy (180, 30, 180)° on the LWR4+;
+* the work areas are pre-registered (:mod:`.work_areas`, ``docs/preregistration/mass-friction.toml``): chosen
+  from the model alone where the fixed posture differs from elbow up; subject ``s`` works in area
+  ``s mod len(areas)``; six targets on a 5 cm dome above the area's centre (:func:`qpnso.lab.surgeon.dome_targets`);
 * a trial visits the six targets in one of ``orders`` random orders (seeded, the same orders for every
   subject), minimum-jerk moves at a peak speed of 0.1 m/s × the subject's speed scale, 0.5 s at rest at each
   target, the rotation about the tool axis free; ``reps`` repetitions of each order, ``subjects`` subjects;
-* strategies: ``damped`` (plain gravity compensation: no null-space torque, as the paper's), ``elbow-up``
-  and ``fixed`` (a null-space joint impedance of 100 N·m/rad with damping ratio 0.1 towards the elbow-up
-  arm angle or the fixed posture), ``active`` (qpnso's ``qp``: 50 % mass, 50 % friction force) and the
-  ablation ``qp-zero`` (``qp`` with every cost weight 0: the ROM rows and damping only);
-* the fixed posture is the cost optimum (50/50) on the self-motion of the work-area centre pose, inside the
-  continuity interval of the elbow-up start (0.5° grid then bounded Brent): "pre-optimised for the work
-  area"; fixed, active and the ablation start there, damped and elbow-up start elbow up (ns = 0);
+* strategies (:data:`STRATEGIES`): ``damped`` (plain gravity compensation: no null-space torque, as the
+  paper's), ``elbow-up`` and ``fixed`` (a null-space joint impedance of 100 N·m/rad with damping ratio 0.1
+  towards the elbow-up arm angle or the fixed posture), ``active`` ([M]'s law as the paper ran it on the robot:
+  the gradient law [M 20]–[M 22] forward simulated and commanded as that impedance, :data:`ACTIVE_STRATEGY`),
+  ``qp`` (qpnso: 50 % mass, 50 % friction force) and the ablation ``qp-zero`` (``qp`` with every cost weight
+  0: the ROM rows and damping only);
+* controls (:data:`CONTROLS`, run on ``control_reps`` repetitions): ``damped-again`` (damped once more, other
+  noise draws: the negative control, a strategy against itself) and ``damped-light`` (damped on the robot with
+  every link's mass and inertia times :data:`LIGHT_MASS_FACTOR`, controller and plant alike: a known change in
+  felt mass, the positive control);
+* the fixed posture is the cost optimum on the self-motion of the area's centre pose inside the continuity
+  interval of elbow up (:func:`.work_areas.fixed_posture`), at the run's rotor inertia; fixed, active, qp and
+  the ablation start there, damped, the controls and elbow-up start elbow up (ns = 0);
 * the damping ratio's inertia is the self-motion's: ``D = 2·0.1·√(100·uᵀA u)`` with ``u`` the unit
   null-space direction at the fixed posture;
 * the plant has :data:`qpnso.lab.experiments.trials.EXPERIMENT_MODEL_ERROR` (one draw per run).
 
-Per trial: |work| per metre ([M 24]: ∫|F·v + M·ω| dt / L), normalised per subject by the largest
-per-strategy mean, and the mean moment orthogonal to the direction of motion (its Fig. 10b), normalised
-the same way.  Statistics: :mod:`qpnso.lab.experiments.statistics`.
+Per trial: |work| of the hand ([M 24]: ∫|F·v + M·ω| dt) over the measured and over the intended path length
+(the two readings of [M 24]), normalised per subject by the largest per-strategy mean of the paper's four, the
+total hand work (J), the tool's path (m), and the mean moment orthogonal to the direction of motion (its Fig.
+10b), normalised the same way.  Statistics: :mod:`qpnso.lab.experiments.statistics`.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
-from scipy.optimize import minimize_scalar
 
 from qpnso.errors import ConfigError
+from qpnso.lab.experiments import work_areas
 from qpnso.lab.experiments.trials import (
     ORDER_STREAM,
     PlantOptions,
@@ -46,150 +52,190 @@ from qpnso.lab.experiments.trials import (
 )
 from qpnso.lab.parallel import job_rng
 
-STRATEGIES = ("damped", "elbow-up", "fixed", "active", "qp-zero")
-"""The trial strategies, in the order of the paper's Table I, then the ablation."""
+STRATEGIES = ("damped", "elbow-up", "fixed", "active", "qp", "qp-zero")
+"""The trial strategies: the paper's four in the order of its Table I, then qpnso's and the ablation."""
 PAPER_STRATEGIES = STRATEGIES[:4]
+CONTROLS = ("damped-again", "damped-light")
+"""The controls: negative (damped against itself) and positive (damped on a lighter robot)."""
+ACTIVE_STRATEGY = "gradient-impedance"
+"""qpnso's name of [M]'s active law as the paper ran it (the gradient law commanded as a joint impedance)."""
+LIGHT_MASS_FACTOR = 0.7
+"""The positive control's link masses and inertias (controller and plant): felt mass −30 % (issue 32)."""
 
 
 @dataclass(frozen=True)
 class MassFrictionOptions(PlantOptions):
-    """Size and fixed parameters of the experiment (see the module docstring)."""
+    """Size and fixed parameters of the experiment (see the module docstring); ``strategies`` and ``controls``
+    choose the groups (a sweep may run fewer), ``control_reps`` the repetitions the controls and the ablation
+    run (the first ones)."""
 
     subjects: int = 8
     orders: int = 5
     reps: int = 3
-    moves: int = 6
+    moves: int = work_areas.MOVES
     robot: str = "lwr4p"
-    center: tuple[float, float, float] = (0.65, 0.0, 0.5)
-    rpy_deg: tuple[float, float, float] = (180.0, 30.0, 180.0)
-    dome_radius: float = 0.05  # m
+    dome_radius: float = work_areas.DOME_RADIUS  # m
     peak_speed: float = 0.1  # m/s
     dwell: float = 0.5  # s
     posture_stiffness: float = 100.0  # N·m/rad
     damping_ratio: float = 0.1
+    strategies: tuple[str, ...] = STRATEGIES
+    controls: tuple[str, ...] = CONTROLS
+    control_reps: int = 1
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("subjects", "orders", "reps"):
+        for name in ("subjects", "orders", "reps", "control_reps"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 2 <= self.moves <= 12:
             raise ConfigError(f"moves must be in [2, 12], got {self.moves}")
+        object.__setattr__(self, "strategies", tuple(self.strategies))
+        object.__setattr__(self, "controls", tuple(self.controls))
+        for name in self.strategies + self.controls:
+            if name not in STRATEGIES + CONTROLS:
+                raise ConfigError(f"unknown group {name!r}; choose among {list(STRATEGIES + CONTROLS)}")
+        if "damped" not in self.strategies:
+            raise ConfigError("the strategies must include 'damped' (the reference of the controls and guards)")
+
+    @property
+    def jobs(self) -> list[tuple[int, int, int, str]]:
+        """Every ``(subject, order, rep, group)``; the controls and the ablation on the first ``control_reps``."""
+        short = set(self.controls) | {"qp-zero"}
+        return [
+            (s, o, r, g)
+            for s in range(self.subjects)
+            for o in range(self.orders)
+            for r in range(self.reps)
+            for g in self.strategies + self.controls
+            if g not in short or r < self.control_reps
+        ]
 
     @property
     def n_jobs(self) -> int:
-        return self.subjects * self.orders * self.reps * len(STRATEGIES)
+        return len(self.jobs)
 
     def job(self, index: int) -> tuple[int, int, int, str]:
-        """``(subject, order, rep, strategy)`` of job ``index``."""
-        grid = itertools.product(range(self.subjects), range(self.orders), range(self.reps), STRATEGIES)
-        return next(itertools.islice(grid, index, None))
-
-    def pose(self) -> pin.SE3:
-        """The work-area centre pose (world frame)."""
-        return pin.SE3(pin.rpy.rpyToMatrix(*np.radians(self.rpy_deg)), np.asarray(self.center, dtype=float))
+        """``(subject, order, rep, group)`` of job ``index``."""
+        return self.jobs[index]
 
 
 @dataclass(frozen=True)
 class WorkArea:
-    """The work area's postures (rad): elbow up (ns = 0) and the fixed optimum, its arm angle (rad), the
-    null-space damping (N·m·s/rad) of the fixed and elbow-up impedance, and the experiment's premise measured
-    on the controller's model (:func:`work_area_summary`)."""
+    """A work area's postures (rad) at the run's rotor inertia: elbow up (ns = 0) and the fixed optimum, its arm
+    angle (rad), the null-space damping (N·m·s/rad) of the fixed and elbow-up impedance, and the experiment's
+    premise measured on the plant (:func:`work_area_summary`)."""
 
+    pose: pin.SE3
     q_up: np.ndarray
     q_opt: np.ndarray
     ns_opt: float
     damping: float
-    premise: dict[str, float]
+    premise: dict[str, Any] = field(default_factory=dict)
 
 
-ELBOW_UP_BRANCH = (-1, 1, -1)
-"""Branch (signs of joints 2, 4, 6) of the work-area postures: scenario A's."""
+PREREGISTERED_TOLERANCE_DEG = 0.1
+"""deg: how far the fixed posture computed now may be from the pre-registered one."""
+
+_AREAS: dict[str, list[WorkArea]] = {}
 
 
-_AREAS: dict[str, WorkArea] = {}
-
-
-def work_area(opts: MassFrictionOptions) -> WorkArea:
-    """The postures of :class:`WorkArea`, computed once per process and options."""
-    key = repr(sorted(asdict(opts).items()))
+def work_areas_of(opts: MassFrictionOptions) -> list[WorkArea]:
+    """The pre-registered work areas' postures at the run's rotor inertia, computed once per process and options."""
+    key = repr((opts.robot, opts.armature_kgm2, opts.posture_stiffness, opts.damping_ratio))
     if key not in _AREAS:
-        _AREAS[key] = _work_area(opts)
+        robot = opts.load_robot(opts.robot)
+        _AREAS[key] = [_work_area(robot, spec, opts) for spec in work_areas.load_preregistration()]
     return _AREAS[key]
 
 
-def _work_area(opts: MassFrictionOptions) -> WorkArea:
-    from qpnso.elbow.intervals import continuity_interval
-    from qpnso.elbow.srs import Branch, ik
-    from qpnso.model.costs import CostModel
-
-    robot = opts.load_robot(opts.robot)
-    pose, b = opts.pose(), Branch(*ELBOW_UP_BRANCH)
-    q_up = ik(robot, pose, 0.0, b)
-    iv = continuity_interval(robot, q_up)
-    cost = CostModel(robot)  # (the controller's cost: default weights, 50 % mass, 50 % friction force)
-    value = lambda ns: cost.value(ik(robot, pose, ns, b))  # noqa: E731
-    grid = np.arange(iv.lo + 1e-3, iv.hi - 1e-3, math.radians(0.5))
-    k = int(np.argmin([value(ns) for ns in grid]))
-    lo, hi = grid[max(0, k - 1)], grid[min(len(grid) - 1, k + 1)]
-    ns = float(minimize_scalar(value, bounds=(lo, hi), method="bounded", options={"xatol": 1e-9}).x)
-    q_opt = ik(robot, pose, ns, b)
-    u = np.linalg.svd(robot.jacobian(q_opt))[2][-1]  # the unit null-space direction
-    inertia = float(u @ robot.mass_matrix(q_opt) @ u)
+def _work_area(robot, spec: work_areas.WorkAreaSpec, opts: MassFrictionOptions) -> WorkArea:
+    pose = spec.pose()
+    p = work_areas.postures(robot, pose)
+    armature = float(robot.model.armature[0])
+    recorded = spec.fixed_arm_angle_deg.get(armature)
+    if recorded is not None and abs(recorded - math.degrees(p.ns_fixed)) > PREREGISTERED_TOLERANCE_DEG:
+        raise ConfigError(
+            f"the model gives the fixed posture of the work area at {spec.center} m at "
+            f"{math.degrees(p.ns_fixed):.2f}°, "
+            f"the pre-registration {recorded:.2f}° (rotor inertia {armature} kg·m²): the model changed since"
+        )
+    u = np.linalg.svd(robot.jacobian(p.q_fixed))[2][-1]  # the unit null-space direction
+    inertia = float(u @ robot.mass_matrix(p.q_fixed) @ u)
     damping = 2.0 * opts.damping_ratio * math.sqrt(opts.posture_stiffness * inertia)
     premise = {
-        "fixed_arm_angle_deg": math.degrees(ns),
-        "mass_elbow_up_kg": cost.principal_mass(q_up),
-        "mass_fixed_kg": cost.principal_mass(q_opt),
-        "friction_elbow_up_N": cost.friction_force_magnitude(q_up),
-        "friction_fixed_N": cost.friction_force_magnitude(q_opt),
+        "center_m": list(spec.center),
+        "pitch_deg": spec.pitch_deg,
+        **p.record(),
         "posture_stiffness_Nm_per_rad": opts.posture_stiffness,
         "nullspace_damping_Nms_per_rad": damping,
+        "preregistered": recorded is not None,
     }
-    return WorkArea(q_up, q_opt, ns, damping, premise)
+    return WorkArea(pose, p.q_up, p.q_fixed, p.ns_fixed, damping, premise)
 
 
-def work_area_summary(opts: MassFrictionOptions) -> dict[str, float]:
-    """The experiment's premise, measured on the controller's model: the fixed posture's arm angle (deg), the
-    felt mass (kg) and friction force (N) at the elbow-up and at the fixed posture, and their impedance."""
-    return dict(work_area(opts).premise)
+def work_area_summary(opts: MassFrictionOptions) -> list[dict[str, Any]]:
+    """The experiment's premise in each work area at the run's rotor inertia, measured on the plant: the fixed
+    posture's arm angle (deg), the felt mass (kg) and friction force (N) at elbow up and at the fixed posture,
+    whether they differ enough (:attr:`.work_areas.Postures.discriminates`), and their impedance."""
+    return [dict(a.premise) for a in work_areas_of(opts)]
 
 
 def controller_values(strategy: str, area: WorkArea, opts: MassFrictionOptions) -> dict[str, Any]:
-    """The controller settings of ``strategy`` in this experiment."""
+    """The controller settings of ``strategy`` (or control) in this experiment."""
     impedance = {"posture_stiffness": opts.posture_stiffness, "joint_damping": area.damping}
     values: dict[str, dict[str, Any]] = {
         "damped": {"strategy": "damped", "joint_damping": 0.0},
         "elbow-up": {"strategy": "elbow-up", **impedance},
         "fixed": {"strategy": "fixed", "fixed_posture": tuple(area.q_opt.tolist()), **impedance},
-        "active": {"strategy": "qp"},
+        "active": {"strategy": ACTIVE_STRATEGY, **impedance},
+        "qp": {"strategy": "qp"},
         "qp-zero": {"strategy": "qp", "weights": {"mass": 0.0, "friction_force": 0.0}},
     }
-    return values[strategy]
+    return values[strategy if strategy in values else "damped"]
+
+
+def light_robot(robot, factor: float = LIGHT_MASS_FACTOR):
+    """``robot`` with every link's mass and rotational inertia times ``factor`` (centres of mass kept): its felt
+    mass is ``factor`` times the robot's where the rotor inertia is 0 (A(q) scales)."""
+    from qpnso.model.robot import Robot
+
+    model = robot.model.copy()
+    for j in range(1, model.njoints):
+        inertia = model.inertias[j]
+        model.inertias[j] = pin.Inertia(inertia.mass * factor, inertia.lever.copy(), inertia.inertia * factor)
+    return Robot(robot.name, model, robot.tool_frame_id, robot.friction, robot.source)
 
 
 def mass_friction_job(index: int, seed: int, opts: MassFrictionOptions) -> dict[str, Any]:
-    """One trial: subject, order and repetition of job ``index``, one strategy; its row."""
+    """One trial: subject, order and repetition of job ``index``, one strategy or control; its row."""
+    from dataclasses import replace
+
     from qpnso.control.config import ControllerConfig
     from qpnso.control.controller import Controller
     from qpnso.lab.simulation import simulate
     from qpnso.lab.surgeon import dome_targets, point_to_point_motion
 
-    s, order, rep, strategy = opts.job(index)
-    area = work_area(opts)
+    s, order, rep, group = opts.job(index)
+    areas = work_areas_of(opts)
+    k = s % len(areas)
+    area = areas[k]
     person = subject(seed, s)
-    pose = opts.pose()
-    targets = dome_targets(pose.translation, opts.dome_radius, opts.moves)
+    targets = dome_targets(area.pose.translation, opts.dome_radius, opts.moves)
     perm = job_rng(seed, ORDER_STREAM + order).permutation(opts.moves)
-    motion = point_to_point_motion(pose, targets[perm], opts.peak_speed * person.speed_scale, opts.dwell)
+    motion = point_to_point_motion(area.pose, targets[perm], opts.peak_speed * person.speed_scale, opts.dwell)
     robot = opts.load_robot(opts.robot)
-    q0 = area.q_up if strategy in ("damped", "elbow-up") else area.q_opt
     sim = opts.simulation(seed, index, person)
-    ctrl = Controller(robot, ControllerConfig.from_dict(controller_values(strategy, area, opts)))
+    if group == "damped-light":
+        robot = light_robot(robot)
+        sim = replace(sim, model_error=replace(sim.model_error, mass_factor=LIGHT_MASS_FACTOR))
+    q0 = area.q_opt if group in ("fixed", "active", "qp", "qp-zero") else area.q_up
+    ctrl = Controller(robot, ControllerConfig.from_dict(controller_values(group, area, opts)))
     summary, error = run_or_error(lambda: simulate(ctrl, motion, q0, sim))
     return {
         "subject": s,
-        "strategy": strategy,
+        "area": k,
+        "strategy": group,
         "order": order,
         "rep": rep,
         "targets": "".join(str(int(i) + 1) for i in perm),

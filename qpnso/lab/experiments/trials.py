@@ -32,13 +32,16 @@ inertias 20 %, joint torque offsets 0.2 N·m (torque-sensor bias).  What moves a
 
 TRIAL_KEYS = (
     "user_work_per_metre_N",
+    "user_work_per_nominal_metre_N",
     "path_length_m",
+    "intended_path_length_m",
     "hand_work_J",
     "orthogonal_torque_mean_Nm",
     "elbow_mobility_deg",
     "constraint_proximity_deg",
     "rom_proximity_deg",
     "smoothness",
+    "intended_smoothness",
     "mass_mean_kg",
     "mass_model_mean_kg",
     "friction_force_mean_N",
@@ -48,8 +51,9 @@ TRIAL_KEYS = (
     "duration_s",
 )
 """The run summary's keys a trial row keeps (with the per-segment smoothness keys)."""
-COLUMNS = {"user_work_per_metre_N": "work_per_metre"}
-"""Summary keys a trial row names otherwise (``work_per_metre``: N = J/m, [M 24] before normalisation)."""
+COLUMNS = {"user_work_per_metre_N": "work_per_metre", "user_work_per_nominal_metre_N": "work_per_nominal_metre"}
+"""Summary keys a trial row names otherwise (``work_per_metre``, ``work_per_nominal_metre``: N = J/m, [M 24]
+before normalisation, over the measured and over the intended path)."""
 
 
 def model_error(seed: int, values: dict[str, float] | None = None) -> ModelMismatch:

@@ -14,7 +14,10 @@ against NumPy/SciPy (tests/test_linalg.py).
   matrices given by their upper triangle (Pinocchio's ``crba`` fills only that);
 * :func:`nullspace_part` — ``v − J⁺Jv``, the part of ``v`` in ``ker J``;
 * :func:`dynamically_consistent_projection` — ``Nᵀτ`` with
-  ``N = I − J̄J``, ``J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹`` (docs/method.md §2).
+  ``N = I − J̄J``, ``J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹`` (docs/method.md §2); the tick factorises once
+  (:func:`nullspace_factors`) and takes from the factors ``Nᵀτ`` (:func:`project_torque`), the
+  self-motion part ``N q̇`` of a velocity (:func:`project_velocity`) and the self-motion's inertia
+  ``1/trace(N A⁻¹)`` (:func:`selfmotion_inertia`).
 """
 
 from __future__ import annotations
@@ -173,18 +176,81 @@ def nullspace_part(J, v):
 
 
 @njit(cache=True)
+def lower_solve(L, B):
+    """``X`` with ``L X = B`` (``L`` lower triangular (n, n), ``B`` (n, k)): forward substitution, column by
+    column."""
+    n, k = B.shape
+    X = np.empty((n, k))
+    for c in range(k):
+        for i in range(n):
+            acc = B[i, c]
+            for j in range(i):
+                acc -= L[i, j] * X[j, c]
+            X[i, c] = acc / L[i, i]
+    return X
+
+
+@njit(cache=True)
+def nullspace_factors(A, J):
+    """``(L_A, W, L_Λ, ok)``, the factors of the dynamically consistent null space of ``J`` (m, n) under the
+    inertia ``A`` (n, n; by its upper triangle): ``L_A L_Aᵀ = A``, ``W = A⁻¹Jᵀ`` (n, m) and
+    ``L_Λ L_Λᵀ = J A⁻¹ Jᵀ = Λ⁻¹`` (regularised by :data:`REGULARIZATION` of its trace: a singular ``J`` gives
+    finite factors).  ``ok`` False when ``A`` or ``Λ⁻¹`` cannot be factorised (then the factors are garbage)."""
+    m, n = J.shape
+    LA, ok = cholesky(A, 0.0)
+    W = np.zeros((n, m))
+    if not ok:
+        return LA, W, np.zeros((m, m)), False
+    for k in range(m):
+        W[:, k] = cholesky_solve(LA, J[k].copy())
+    LL, ok = cholesky(matmul(J, W), REGULARIZATION)
+    return LA, W, LL, ok
+
+
+@njit(cache=True)
+def project_torque(J, W, LL, tau):
+    """``Nᵀτ = τ − Jᵀ Λ J A⁻¹ τ`` (N·m) from :func:`nullspace_factors` (``Λ = (J A⁻¹ Jᵀ)⁻¹``): a torque that
+    gives the tool no acceleration (``J A⁻¹ Nᵀτ = 0``)."""
+    return tau - matvec(J.T, cholesky_solve(LL, matvec(W.T, tau)))
+
+
+@njit(cache=True)
+def project_velocity(J, W, LL, dq):
+    """``N q̇ = q̇ − A⁻¹Jᵀ Λ J q̇`` (rad/s) from :func:`nullspace_factors`: the self-motion part of a joint
+    velocity (``J N q̇ = 0``), its part A-orthogonal to the tool's motion — what the arm's kinetic energy
+    splits into, ``q̇ᵀAq̇ = (J̄Jq̇)ᵀA(J̄Jq̇) + (Nq̇)ᵀA(Nq̇)`` — so a velocity a tool force gives the arm from rest,
+    ``A⁻¹Jᵀf`` (in the range of ``J̄ = A⁻¹JᵀΛ``), has none."""
+    return dq - matvec(W, cholesky_solve(LL, matvec(J, dq)))
+
+
+@njit(cache=True)
+def selfmotion_inertia(LA, W, LL):
+    """``1/trace(N A⁻¹)`` (kg·m² for revolute joints) from :func:`nullspace_factors`: the inertia a null-space
+    torque moves.  ``N A⁻¹ = A⁻¹ − W Λ Wᵀ = Z (ZᵀAZ)⁻¹ Zᵀ`` for an orthonormal basis ``Z`` of ``ker J``, so
+    its trace is the sum of the inverse self-motion inertias (the eigenvalues of ``ZᵀAZ``): exactly the
+    self-motion's inertia ``zᵀAz`` when ``ker J`` is one direction ``z`` (a 7-joint arm and a 6-D tool), the
+    least of them or less otherwise (conservative).  ``trace(A⁻¹) = ‖L_A⁻¹‖²_F``,
+    ``trace(WΛWᵀ) = ‖L_Λ⁻¹Wᵀ‖²_F``.  0 when the difference is not positive (round-off on a null space much
+    heavier than the arm's lightest direction)."""
+    n = LA.shape[0]
+    inv_a = lower_solve(LA, np.eye(n))
+    part = lower_solve(LL, W.T.copy())
+    trace = 0.0
+    for i in range(n):
+        for j in range(n):
+            trace += inv_a[i, j] * inv_a[i, j]
+    for i in range(part.shape[0]):
+        for j in range(n):
+            trace -= part[i, j] * part[i, j]
+    return 1.0 / trace if trace > 0.0 else 0.0
+
+
+@njit(cache=True)
 def dynamically_consistent_projection(A, J, tau):
     """``(Nᵀτ, ok)``: ``Nᵀτ = τ − Jᵀ Λ J A⁻¹ τ`` with ``Λ = (J A⁻¹ Jᵀ)⁻¹`` (docs/method.md §2); ``A`` by its
     upper triangle.  When ``A`` or ``J A⁻¹ Jᵀ`` cannot be factorised (``ok`` False): zero, never NaN and
     never ``τ`` unprojected (that would push the tool): the tick's torque is then ``g(q)`` alone."""
-    LA, ok = cholesky(A, 0.0)
+    _, W, LL, ok = nullspace_factors(A, J)
     if not ok:
         return np.zeros_like(tau), False
-    m, n = J.shape
-    W = np.empty((n, m))  # A⁻¹ Jᵀ
-    for k in range(m):
-        W[:, k] = cholesky_solve(LA, J[k].copy())
-    LL, ok = cholesky(matmul(J, W), REGULARIZATION)
-    if not ok:
-        return np.zeros_like(tau), False
-    return tau - matvec(J.T, cholesky_solve(LL, matvec(W.T, tau))), True
+    return project_torque(J, W, LL, tau), True

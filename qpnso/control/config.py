@@ -38,7 +38,7 @@ from qpnso.settings import SettingError, check, keywords_checked, out_of_range
 from qpnso.settings import from_dict as settings_from_dict
 
 _NOT_OK_BITS = FLAG_QP_FAILED | FLAG_ELBOW_DROPPED | FLAG_INTERNAL_ERROR
-STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom")
+STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom", "gradient-impedance")
 
 
 class Status(enum.Flag):
@@ -95,13 +95,22 @@ class ControllerConfig:
     elbow_gain: float = 5.0  # 1/s, velocity damper of the elbow bounds
     joint_limit_gain: float = 20.0  # 1/s, velocity damper of the joint limits (≤ 1/dt)
     slack_weight: float = 1e6  # weight of the elbow constraints' slack
-    joint_damping: float = 10.0  # N·m·s/rad, null-space damping (DP)
+    joint_damping: float = 10.0  # N·m·s/rad, null-space damping (DP, FOP, elbow-up, rom, qp), at most
+    # nullspace_damping_margin·m/dt in the tick
+    nullspace_damping_margin: float = 0.5  # μ (unitless, in (0, 2)): every strategy's null-space damping is at
+    # most μ·m/dt, m (kg·m²) the self-motion's inertia this tick (1: deadbeat; 2: unstable), and at least K·dt for
+    # a stiffness K (N·m/rad), cut to D/dt where the two meet (control/selfmotion.py; Command.nullspace_damping)
+    friction_compensation: float = 1.0  # in [0, 1]: the fraction of the controller's friction model [M 23]
+    # compensated along the measured velocity's self-motion part N q̇ (never along the surgeon's motion); 0: off
     posture_stiffness: float = 30.0  # N·m/rad, FOP / elbow-up
     posture_gain: float = 2.0  # 1/s, kinematic rate towards a posture
     fixed_posture: tuple[float, ...] | None = None  # rad; None: the reset posture
     gradient_kp: float = 50.0  # [M 20]
     gradient_kd: float = 10.0  # [M 20], [M 22]
     gradient_omega_max: float = 10.0  # rad/s [M 20]
+    gradient_impedance_stiffness: float = 100.0  # N·m/rad: the joint impedance [M] V-A commanded the forward-
+    # simulated posture with (strategy gradient-impedance)
+    gradient_impedance_damping_ratio: float = 0.1  # and its damping ratio, in the self-motion's inertia
     elbow_up_angle_deg: float = 0.0  # arm angle the elbow-up strategy holds
     interval_period: int = 10  # ticks between interval updates while the tool moves
     interval_steps_per_tick: int = 1  # an arm without the closed form (the Panda): pieces of its numerical
@@ -179,6 +188,8 @@ class ControllerConfig:
         for name in (
             "cost_filter_time",
             "posture_filter_time",
+            "gradient_impedance_stiffness",
+            "gradient_impedance_damping_ratio",
             "safety_margin_deg",
             "q_limit_tolerance_deg",
             "obstacle_damping",
@@ -186,6 +197,12 @@ class ControllerConfig:
         ):
             if getattr(self, name) < 0:
                 raise out_of_range(self, name, "must be >= 0")
+        if not 0 < self.nullspace_damping_margin < 2:
+            raise out_of_range(
+                self, "nullspace_damping_margin", "must be in (0, 2): D·dt/m at 2 or above is unstable (1: deadbeat)"
+            )
+        if not 0 <= self.friction_compensation <= 1:
+            raise out_of_range(self, "friction_compensation", "must be in [0, 1] (0: off)")
         if self.interval_period < 1:
             raise out_of_range(self, "interval_period", "must be >= 1 tick")
         if self.interval_steps_per_tick < 1:
@@ -233,7 +250,8 @@ class Command:
     dq: np.ndarray  # joint velocity command, rad/s
     q_des: np.ndarray  # joint set-point q + dt·dq, rad
     tau: np.ndarray  # torque command: g(q) + Nᵀ τ_null, N·m
-    stiffness: float  # null-space stiffness the strategy applies (K(ns) [E 6] for qp/rom), N·m/rad
+    stiffness: float  # null-space stiffness the strategy applies (K(ns) [E 6] for qp/rom), N·m/rad, after its
+    # bound from the self-motion's inertia (0 on a stop)
     arm_angle: float  # ns, rad, unwrapped along the run
     rom: tuple[float, float]  # ROM_t [E 10], [E 11], rad (same unwrapping)
     interval: tuple[float, float]  # continuity interval [E 9], rad
@@ -244,6 +262,9 @@ class Command:
     tool_error: tuple[float, float]  # (m, rad) pose error before this tick's correction
     message: str = ""
     clearance: float = math.inf  # m: the least distance of a link capsule to an obstacle (inf: no obstacle)
+    nullspace_inertia: float = 0.0  # kg·m²: the self-motion's inertia 1/trace(N A⁻¹) this tick (0: not formed)
+    nullspace_damping: float = 0.0  # N·m·s/rad: the null-space damping applied, at most
+    # nullspace_damping_margin·nullspace_inertia/dt
 
     @property
     def ok(self) -> bool:

@@ -458,7 +458,7 @@ class Controller:
             dq.copy(),
             q_des.copy(),
             tau.copy(),
-            self.strategy.stiffness(r.stiffness),
+            r.null_stiffness,
             r.ns,
             (r.rom_lo, r.rom_hi),
             (r.iv_lo, r.iv_hi),
@@ -469,6 +469,8 @@ class Controller:
             (r.e_pos, r.e_rot),
             message or (self._obstacle_message(r) if bits & FLAG_OBSTACLE else ""),
             r.clearance,
+            r.null_inertia,
+            r.null_damping,
         )
         return _stamped(cmd, bits, t0)
 

@@ -47,6 +47,8 @@ _SCALARS = (
     # the command
     "dt",  # s
     "joint_damping",  # D (N·m·s/rad)
+    "nullspace_damping_margin",  # μ: the null-space damping at most μ·m/dt (control.selfmotion)
+    "friction_compensation",  # the fraction of the self-motion's modelled friction compensated (0: none)
     # the elbow [E 5], [E 6], [E 10], [E 11]
     "rom_half_width",  # Δns (rad)
     "safety_margin",  # d_sg (rad)
@@ -73,6 +75,8 @@ _VECTORS = (
     "dq_max",  # rad/s
     "ddq_max",  # rad/s²: a command's change per tick at most ddq_max·dt (0: none; rows.joint_limits)
     "tau_limit",  # N·m; 0: none given
+    "friction_tau_max",  # N·m: the friction model's sliding torque [M 23] (robot.friction)
+    "friction_beta",  # s/rad: and its slope parameter
 )
 
 
@@ -137,6 +141,8 @@ def tick_params(
         slack_weight=cfg.slack_weight,
         dt=cfg.dt,
         joint_damping=cfg.joint_damping,
+        nullspace_damping_margin=cfg.nullspace_damping_margin,
+        friction_compensation=cfg.friction_compensation,
         rom_half_width=ec.half_width_rad,
         safety_margin=ec.safety_margin_rad,
         stiffness_min=ec.stiffness_min,
@@ -159,6 +165,8 @@ def tick_params(
         dq_max=robot.dq_max,
         ddq_max=acceleration_limits(robot, cfg),
         tau_limit=np.where(np.isfinite(limit) & (limit > 0), limit, 0.0),
+        friction_tau_max=robot.friction.tau_max,
+        friction_beta=robot.friction.beta,
     )
     bounds = [kind.bounds(robot) for kind in rows]
     sizes = [np.size(lo) for lo, _ in bounds]

@@ -2,14 +2,16 @@
 
 Every tick a strategy fills in what is its own (:meth:`Strategy.fill`), on the tick's records
 (:class:`qpnso.control.controller.TickRecords`): level 2 of the problem record (what the arm does in the
-tool's null space; :mod:`qpnso.qp.problem`) and the command record's null-space torque law, which
-:func:`qpnso.control.tick.finish_tick` projects into the dynamically consistent null space and adds to
-gravity compensation.  The ``qp`` strategy does both in one kernel (:func:`qpnso.control.tick.qp_level2`);
-the papers' baselines, written in Python, say them as
+tool's null space; :mod:`qpnso.qp.problem`) and the command record's null-space impedance, whose gains
+:func:`qpnso.control.tick.finish_tick` bounds by the self-motion's inertia
+(:func:`qpnso.control.selfmotion.impedance_gains`) before it projects the torque into the dynamically
+consistent null space and adds it to gravity compensation.  The ``qp`` strategy does both in one kernel
+(:func:`qpnso.control.tick.qp_level2`); the papers' baselines, written in Python, say them as
 
 * ``level2(state, elbow)``: a :class:`~qpnso.qp.Level` (task, quadratic, linear term) or None for "nothing";
-* ``nullspace_torque(state, elbow, dq_meas)``: the joint torque they would apply (N·m), which does not
-  depend on the command.
+* ``nullspace_law(state, elbow)``: their joint impedance (:class:`NullspaceLaw`: stiffness, set-point,
+  damping, damping ratio, the damper's target velocity), which does not depend on the command;
+  ``nullspace_torque(state, elbow, dq_meas)`` is its torque (N·m) before the tick's bounds.
 
 Level 1 (the tool), the joint bounds and the solver are the same for every strategy, so the strategies
 differ only where the papers differ.
@@ -18,21 +20,66 @@ differ only where the papers differ.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from qpnso.control.state import TickState
 from qpnso.control.tick import low_pass, qp_level2
+from qpnso.control.virtual_arm import VirtualArm, saturated_gradient_velocity
 from qpnso.elbow.closed_form import SRS_OK, branch_signs, srs_ik
 from qpnso.elbow.srs import is_srs, srs_geometry
 from qpnso.errors import ConfigError
+from qpnso.linalg import nullspace_factors, selfmotion_inertia
 from qpnso.qp import Level
 from qpnso.qp.problem import set_level2
 
 if TYPE_CHECKING:
     from qpnso.control.config import ControllerConfig, ElbowState
     from qpnso.control.controller import Controller, TickRecords
+
+
+@dataclass(frozen=True)
+class NullspaceLaw:
+    """A strategy's null-space joint impedance: ``τ_null = K·offset + D·(velocity − q̇)`` (N·m) with
+    ``D = damping + 2·damping_ratio·√(K·m)``, ``m`` the self-motion's inertia (kg·m²), before the tick bounds
+    ``K`` and ``D`` by ``m`` (:func:`qpnso.control.selfmotion.impedance_gains`).  ``stiffness`` K (N·m/rad),
+    ``offset`` the set-point minus ``q`` (rad; None: none), ``damping`` (N·m·s/rad), ``damping_ratio`` (ζ),
+    ``velocity`` the damper's target (rad/s; None: rest)."""
+
+    stiffness: float = 0.0
+    offset: np.ndarray | None = None
+    damping: float = 0.0
+    damping_ratio: float = 0.0
+    velocity: np.ndarray | None = None
+
+    def torque(self, dq: np.ndarray, inertia: float = 0.0) -> np.ndarray:
+        """The law's torque (N·m) at the joint velocity ``dq`` (rad/s) on a self-motion of ``inertia``
+        (kg·m²; it enters only through ``damping_ratio``), unbounded."""
+        damping = self.damping + 2.0 * self.damping_ratio * math.sqrt(self.stiffness * inertia)
+        spring = 0.0 if self.offset is None else self.stiffness * self.offset
+        target = 0.0 if self.velocity is None else self.velocity
+        return spring + damping * (target - dq)
+
+    def write(self, command: np.void) -> None:
+        """Into the tick's command record (:func:`qpnso.control.tick.command_dtype`): the law, without the
+        ``qp`` strategy's terms along the command (``spring_cmd`` and ``damp_cmd`` 0)."""
+        command["offset"] = 0.0 if self.offset is None else self.offset
+        command["velocity"] = 0.0 if self.velocity is None else self.velocity
+        command["stiffness"], command["damping"], command["damping_ratio"] = (
+            self.stiffness,
+            self.damping,
+            self.damping_ratio,
+        )
+        command["spring_cmd"], command["damp_cmd"] = 0.0, 0.0
+
+
+def state_inertia(state: "TickState") -> float:
+    """The self-motion's inertia (kg·m²) at ``state``: :func:`qpnso.linalg.selfmotion_inertia` of its mass
+    matrix (upper triangle) and Jacobian; 0 when it cannot be formed."""
+    LA, W, LL, ok = nullspace_factors(state.mass_matrix, state.jacobian)
+    return float(selfmotion_inertia(LA, W, LL)) if ok else 0.0
 
 
 class Strategy:
@@ -63,23 +110,23 @@ class Strategy:
 
     def fill(self, tick: "TickRecords") -> None:
         """Level 2 into ``tick.problem`` (:func:`qpnso.qp.problem.set_level2` of :meth:`level2`) and the
-        torque law into ``tick.command``: :meth:`nullspace_torque`, as a constant ``spring``."""
+        impedance into ``tick.command`` (:meth:`nullspace_law`; the tick bounds its gains)."""
         state, elbow = TickState.of(tick.q, tick.state), tick.elbow()
         set_level2(tick.problem, self.level2(state, elbow))
-        c = tick.command[0]
-        c["spring"] = self.nullspace_torque(state, elbow, tick.dq_meas)
-        c["stiffness_dt"], c["damping"], c["damp_cmd"] = 0.0, 0.0, 0.0
+        self.nullspace_law(state, elbow).write(tick.command[0])
 
     def level2(self, state: "TickState", elbow: "ElbowState") -> Level | None:
         return None
 
-    def stiffness(self, elbow_stiffness: float) -> float:
-        """The null-space stiffness this strategy applies (N·m/rad) given the elbow's K(ns): none for DP."""
-        return 0.0
+    def nullspace_law(self, state: "TickState", elbow: "ElbowState") -> NullspaceLaw:
+        """DP: τ = −D q̇ with D = ``joint_damping`` (10 N·m·s/rad, the elbow paper's)."""
+        return NullspaceLaw(damping=self.cfg.joint_damping)
 
     def nullspace_torque(self, state: "TickState", elbow: "ElbowState", dq_meas: np.ndarray) -> np.ndarray:
-        """DP: τ = −D q̇ with D = ``joint_damping`` (10 N·m·s/rad, the elbow paper's)."""
-        return -self.cfg.joint_damping * dq_meas
+        """The torque (N·m) of :meth:`nullspace_law` at the measured ``dq_meas`` (rad/s), before the tick bounds
+        its gains by the self-motion's inertia."""
+        law = self.nullspace_law(state, elbow)
+        return law.torque(dq_meas, state_inertia(state) if law.damping_ratio else 0.0)
 
 
 class Damped(Strategy):
@@ -95,9 +142,6 @@ class FixedPosture(Strategy):
 
     name = "fixed"
 
-    def stiffness(self, elbow_stiffness: float) -> float:
-        return self.cfg.posture_stiffness
-
     def reset(self, q0: np.ndarray, state: "TickState") -> None:
         super().reset(q0, state)
         ref = self.cfg.fixed_posture
@@ -106,8 +150,9 @@ class FixedPosture(Strategy):
     def level2(self, state: "TickState", elbow: "ElbowState") -> Level:
         return Level(A=self._identity, b=self.posture_target(self.cfg.posture_gain * (self.q_ref - state.q)))
 
-    def nullspace_torque(self, state, elbow, dq_meas) -> np.ndarray:
-        return self.cfg.posture_stiffness * (self.q_ref - state.q) - self.cfg.joint_damping * dq_meas
+    def nullspace_law(self, state, elbow) -> NullspaceLaw:
+        """``K_P (q_ref − q) − D q̇``."""
+        return NullspaceLaw(self.cfg.posture_stiffness, self.q_ref - state.q, self.cfg.joint_damping)
 
 
 def clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
@@ -143,9 +188,6 @@ class ElbowUp(Strategy):
 
     name = "elbow-up"
 
-    def stiffness(self, elbow_stiffness: float) -> float:
-        return self.cfg.posture_stiffness
-
     def _delta(self, elbow: "ElbowState") -> float:
         target = np.radians(self.cfg.elbow_up_angle_deg)
         return float((target - elbow.ns + np.pi) % (2 * np.pi) - np.pi)
@@ -155,8 +197,10 @@ class ElbowUp(Strategy):
         rate = self.cfg.posture_gain * self._delta(elbow)  # rad/s of the arm angle
         return Level(A=row, b=self.posture_target(np.array([rate])))
 
-    def nullspace_torque(self, state, elbow, dq_meas) -> np.ndarray:
-        return self.cfg.posture_stiffness * arm_angle_step(state, self._delta(elbow)) - self.cfg.joint_damping * dq_meas
+    def nullspace_law(self, state, elbow) -> NullspaceLaw:
+        """``K_P δq(Δns) − D q̇``."""
+        step = arm_angle_step(state, self._delta(elbow))
+        return NullspaceLaw(self.cfg.posture_stiffness, step, self.cfg.joint_damping)
 
 
 class Gradient(Strategy):
@@ -171,15 +215,68 @@ class Gradient(Strategy):
     name = "gradient"
 
     def desired_velocity(self, state: "TickState") -> np.ndarray:
-        omega = -self.cfg.gradient_kp / self.cfg.gradient_kd * state.cost_gradient
-        norm = float(np.linalg.norm(omega))
-        return omega * min(1.0, self.cfg.gradient_omega_max / norm) if norm > 0 else omega
+        """``v_d ω_des`` (rad/s) at the state's cost gradient
+        (:func:`qpnso.control.virtual_arm.saturated_gradient_velocity`)."""
+        cfg = self.cfg
+        return saturated_gradient_velocity(
+            state.cost_gradient, cfg.gradient_kp, cfg.gradient_kd, cfg.gradient_omega_max
+        )
 
     def level2(self, state, elbow) -> Level:
         return Level(A=self._identity, b=self.posture_target(self.desired_velocity(state)))
 
-    def nullspace_torque(self, state, elbow, dq_meas) -> np.ndarray:
-        return -self.cfg.gradient_kd * (dq_meas - self.desired_velocity(state))
+    def nullspace_law(self, state, elbow) -> NullspaceLaw:
+        """``F_p = −k_d (q̇ − v_d ω_des)``: a damper ``k_d`` towards the desired velocity."""
+        return NullspaceLaw(damping=self.cfg.gradient_kd, velocity=self.desired_velocity(state))
+
+
+class GradientImpedance(Strategy):
+    """[M]'s active law as [M] V-A ran it on the LWR 4+: [M 20]–[M 22] forward simulated on a virtual arm whose
+    tool pose is set to the measured one every tick (:class:`qpnso.control.virtual_arm.VirtualArm`, gains
+    ``gradient_kp``, ``gradient_kd``, ``gradient_omega_max``), its joint angles ``q_D`` commanded as a null-space
+    joint impedance ``K(q_D − q) − D q̇`` with ``K = gradient_impedance_stiffness`` (100 N·m/rad) and ``D`` of
+    damping ratio ``gradient_impedance_damping_ratio`` (0.1) in the self-motion's inertia (the KUKA impedance
+    damps the measured velocity).  Kinematically level 2 asks ``q̇ = target(q̇_D + posture_gain (q_D − q))``
+    (:meth:`Strategy.posture_target`).  A virtual arm that cannot be brought to the measured pose restarts at
+    the measured ``q``, at rest.  The virtual arm advances once per tick (:meth:`fill` asks :meth:`level2` and
+    :meth:`nullspace_law` with the same state)."""
+
+    name = "gradient-impedance"
+
+    def __init__(self, controller: "Controller") -> None:
+        super().__init__(controller)
+        cfg = self.cfg
+        self.arm = VirtualArm(
+            controller.robot, controller.cost, cfg.gradient_kp, cfg.gradient_kd, cfg.gradient_omega_max
+        )
+        self._advanced_at: TickState | None = None  # the state the virtual arm last advanced at
+
+    def reset(self, q0: np.ndarray, state: "TickState") -> None:
+        super().reset(q0, state)
+        self.arm.reset(q0)
+        self._advanced_at = None
+
+    def virtual(self, state: "TickState") -> tuple[np.ndarray, np.ndarray]:
+        """``(q_D, q̇_D)`` (rad, rad/s) of this tick: the virtual arm anchored at the state's tool pose and
+        advanced one tick, once per state."""
+        if self._advanced_at is not state:
+            if not self.arm.anchor(state.tool_rotation, state.tool_position):
+                self.arm.reset(state.q)
+            self.arm.advance(self.cfg.dt)
+            self._advanced_at = state
+        return self.arm.q, self.arm.dq
+
+    def level2(self, state, elbow) -> Level:
+        q_d, dq_d = self.virtual(state)
+        return Level(A=self._identity, b=self.posture_target(dq_d + self.cfg.posture_gain * (q_d - state.q)))
+
+    def nullspace_law(self, state, elbow) -> NullspaceLaw:
+        """``K (q_D − q) − D q̇``, ``D = 2ζ√(K·m)``."""
+        cfg = self.cfg
+        q_d, _ = self.virtual(state)
+        return NullspaceLaw(
+            cfg.gradient_impedance_stiffness, q_d - state.q, damping_ratio=cfg.gradient_impedance_damping_ratio
+        )
 
 
 class RomModulation(Strategy):
@@ -202,9 +299,6 @@ class RomModulation(Strategy):
         self._q_set = np.zeros(robot.nq)  # rad: the closed-form set-point, written by the kernel
         self._step_of: tuple[TickState, tuple[float, float, float], np.ndarray | None] | None = None  # (state,
         # (ns, ROM_t), the set-point step there)
-
-    def stiffness(self, elbow_stiffness: float) -> float:
-        return elbow_stiffness
 
     def _setpoint_step(self, state: "TickState", elbow: "ElbowState") -> np.ndarray | None:
         """``q_des − q`` (rad) at the saturated arm angle, or None inside ROM_t; computed once per state and
@@ -237,10 +331,9 @@ class RomModulation(Strategy):
             return None
         return Level(A=self._identity, b=target)
 
-    def nullspace_torque(self, state, elbow, dq_meas) -> np.ndarray:
-        step = self._setpoint_step(state, elbow)
-        spring = 0.0 if step is None else elbow.stiffness * step
-        return spring - self.cfg.joint_damping * dq_meas
+    def nullspace_law(self, state, elbow) -> NullspaceLaw:
+        """``K(ns)(q_des − q) − D q̇`` (inside ROM_t ``q_des = q``)."""
+        return NullspaceLaw(elbow.stiffness, self._setpoint_step(state, elbow), self.cfg.joint_damping)
 
 
 def setpoint_ik(geometry: np.void, state: "TickState", ns: float, out: np.ndarray) -> bool:
@@ -269,19 +362,19 @@ class QPStrategy(Strategy):
 
     name = "qp"
 
-    def stiffness(self, elbow_stiffness: float) -> float:
-        return elbow_stiffness
-
     def fill(self, tick: "TickRecords") -> None:
         """Level 2 and the impedance in one kernel: :func:`qpnso.control.tick.qp_level2`."""
         qp_level2(tick.tick)
 
 
-_STRATEGIES = {cls.name: cls for cls in (Damped, FixedPosture, ElbowUp, Gradient, RomModulation, QPStrategy)}
+_STRATEGIES = {
+    cls.name: cls for cls in (Damped, FixedPosture, ElbowUp, Gradient, GradientImpedance, RomModulation, QPStrategy)
+}
 
 
 def make_strategy(name: str, controller: "Controller") -> Strategy:
-    """The strategy called ``name`` (``qp``, ``damped``, ``fixed``, ``elbow-up``, ``gradient``, ``rom``)."""
+    """The strategy called ``name`` (``qp``, ``damped``, ``fixed``, ``elbow-up``, ``gradient``,
+    ``gradient-impedance``, ``rom``)."""
     try:
         return _STRATEGIES[name](controller)
     except KeyError:

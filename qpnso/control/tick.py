@@ -9,8 +9,9 @@ Every tick, for every strategy, runs the same four steps on named records:
 2. the strategy's level 2 (:mod:`qpnso.control.strategies`; the ``qp`` strategy's is the kernel
    :func:`qp_level2`);
 3. the hierarchical QP solves the problem (:meth:`qpnso.qp.solver.HierarchicalQP.solve_problem`);
-4. :func:`finish_tick` — the command ``q̇``, ``q_des = q + dt·q̇`` and ``τ = g(q) + Nᵀτ_null`` with its
-   checks, into the command record (:func:`command_dtype`).
+4. :func:`finish_tick` — the command ``q̇``, ``q_des = q + dt·q̇`` and ``τ = g(q) + Nᵀτ_null + τ_fc`` (the
+   null-space impedance's gains bounded by the self-motion's inertia, the self-motion's friction compensated:
+   :mod:`qpnso.control.selfmotion`) with its checks, into the command record (:func:`command_dtype`).
 
 The small formulas are kernels of their own: :func:`pose_error`, :func:`level1_target`,
 :func:`cost_step`, :func:`low_pass`, :func:`answer_bits`, :func:`finish_command`; the constraint rows (joint
@@ -54,8 +55,9 @@ from qpnso.control.rows.elbow import elbow_row
 from qpnso.control.rows.joint_limits import acceleration_bounds, bounded_change, velocity_bounds
 from qpnso.control.rows.kind import add_rows
 from qpnso.control.rows.obstacles import keep_out_torque, obstacle_bits, obstacle_rows, soft_violation
+from qpnso.control.selfmotion import impedance_gains, selfmotion_friction
 from qpnso.control.state import sanitize_state, state_dtype
-from qpnso.linalg import dot, dynamically_consistent_projection, matmul, nullspace_part
+from qpnso.linalg import dot, matmul, nullspace_factors, nullspace_part, project_torque, selfmotion_inertia
 from qpnso.qp.problem import SOLVED, STOPPED, problem_dtype, solution_dtype
 
 LOG3_NEAR_PI = 0.75 * math.pi
@@ -94,7 +96,9 @@ class Report(NamedTuple):
     ``dropped`` 1 when the arm angle is singular; the arm angle ``ns``, ROM_t and the continuity interval
     (rad, unwrapped along the run); K(ns) (N·m/rad); level 1's pose error (m, rad) and the cost [M 18]; the
     least clearance of a link capsule to an obstacle (m; inf: none) with the pair (capsule, obstacle; −1: none),
-    and the keep-out rows' place among the soft rows (:mod:`qpnso.control.rows.obstacles`)."""
+    and the keep-out rows' place among the soft rows (:mod:`qpnso.control.rows.obstacles`); then, from
+    :func:`finish_tick`, the self-motion's inertia (kg·m²; 0: not formed) and the null-space stiffness
+    (N·m/rad) and damping (N·m·s/rad) applied to it (:func:`qpnso.control.selfmotion.impedance_gains`)."""
 
     bits: int
     dropped: int
@@ -112,6 +116,9 @@ class Report(NamedTuple):
     clear_obstacle: int
     obstacle_first: int
     obstacle_rows: int
+    null_inertia: float
+    null_stiffness: float
+    null_damping: float
 
 
 def report_dtype() -> np.dtype:
@@ -122,11 +129,15 @@ def report_dtype() -> np.dtype:
 
 def command_dtype(n: int) -> np.dtype:
     """A tick's command (:func:`finish_tick`): ``dq`` (rad/s), ``q_des`` (rad), ``tau`` (N·m); and the
-    strategy's null-space torque law ``τ_null = spring + stiffness_dt·q̇_cmd + damping·(damp_cmd·q̇_cmd − q̇)``
-    (N·m, N·m·s/rad; ``damp_cmd`` 0 or 1), which it writes before the QP is solved."""
+    strategy's null-space impedance, which it writes before the QP is solved:
+    ``τ_null = K·(offset + spring_cmd·dt·q̇_cmd) + D·(velocity + damp_cmd·q̇_cmd − q̇)`` with ``K`` the
+    ``stiffness`` (N·m/rad), ``offset`` its set-point minus ``q`` (rad), ``D = damping + 2·damping_ratio·√(K·m)``
+    (N·m·s/rad; ``m`` the self-motion's inertia), ``velocity`` the damper's target (rad/s), ``spring_cmd`` and
+    ``damp_cmd`` 0 or 1; ``K`` and ``D`` bounded by :func:`qpnso.control.selfmotion.impedance_gains`."""
     f8 = np.float64
-    vectors = [(name, f8, n) for name in ("dq", "q_des", "tau", "spring")]
-    return np.dtype(vectors + [("stiffness_dt", f8), ("damping", f8), ("damp_cmd", f8)])
+    vectors = [(name, f8, n) for name in ("dq", "q_des", "tau", "offset", "velocity")]
+    scalars = [(name, f8) for name in ("stiffness", "spring_cmd", "damping", "damping_ratio", "damp_cmd")]
+    return np.dtype(vectors + scalars)
 
 
 def tick_dtype(
@@ -405,6 +416,7 @@ def stop_tick(q, gravity, tick):
     r.ns, r.rom_lo, r.rom_hi, r.iv_lo, r.iv_hi = ns, ns, ns, ns - math.pi, ns + math.pi
     r.stiffness, r.e_pos, r.e_rot, r.cost, r.dropped = 0.0, 0.0, 0.0, 0.0, 1
     r.obstacle_rows = 0  # (the clearance: as begin_tick last found it)
+    r.null_inertia, r.null_stiffness, r.null_damping = 0.0, 0.0, 0.0  # (no impedance)
     c.dq[:] = 0.0
     c.q_des[:] = q
     c.tau[:] = gravity
@@ -418,11 +430,12 @@ def qp_level2(tick):
     """The ``qp`` strategy's level 2 (docs/method.md §7) into the tick record's problem: ``½‖q̇‖² + sᵀq̇``
     with ``s`` the cost step (:func:`cost_step`) low-passed in its memory, and — unless the elbow is
     dropped — the elbow row (:func:`qpnso.control.rows.elbow.elbow_row`), soft; and its null-space impedance
-    ``τ_null = K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)`` into its command's torque law."""
+    ``τ_null = K(ns)·dt·q̇_cmd + D(q̇_cmd − q̇)`` (D = ``joint_damping``) into its command's torque law."""
     t = tick[0]
     s, P, m, r, pb, c = t.state, t.params, t.memory, t.report, t.problem, t.command
-    c.spring[:] = 0.0
-    c.stiffness_dt, c.damping, c.damp_cmd = r.stiffness * P.dt, P.joint_damping, 1.0
+    c.offset[:] = 0.0
+    c.velocity[:] = 0.0
+    c.stiffness, c.spring_cmd, c.damping, c.damping_ratio, c.damp_cmd = r.stiffness, 1.0, P.joint_damping, 0.0, 1.0
     m.cost_step[:] = low_pass(
         m.cost_step, cost_step(s.J, s.cost_gradient, P.cost_gain, P.nullspace_speed_max), P.cost_filter_alpha
     )
@@ -444,15 +457,42 @@ def prediction_missed(dq, predicted, tolerance):
 
 
 @njit(cache=True)
+def command_torque(dq_meas, t):
+    """The command's torque ``τ = g(q) + Nᵀτ_null + τ_fc`` (N·m) into the tick record ``t``'s command, from one
+    factorisation of the null space (:func:`qpnso.linalg.nullspace_factors`): the self-motion's inertia ``m``
+    (:func:`qpnso.linalg.selfmotion_inertia`), the strategy's impedance with its gains bounded by ``m``
+    (:func:`qpnso.control.selfmotion.impedance_gains`; the law of :func:`command_dtype`, against the
+    measured ``dq_meas``, rad/s) and the keep-out rows' wall, projected with the dynamically consistent ``Nᵀ``
+    (:func:`qpnso.linalg.project_torque`), and the self-motion's friction compensated, un-projected
+    (:func:`qpnso.control.selfmotion.selfmotion_friction`; ``P.friction_compensation`` 0: none).  ``m``, ``K``
+    and ``D`` into the report.  When the factorisation fails, ``τ = g(q)`` alone (an unprojected torque would
+    push the tool)."""
+    s, P, r, c = t.state, t.params, t.report, t.command
+    dq = c.dq
+    LA, W, LL, ok = nullspace_factors(s.A, s.J)
+    inertia = selfmotion_inertia(LA, W, LL) if ok else 0.0
+    K, D = impedance_gains(c.stiffness, c.damping, c.damping_ratio, inertia, P.dt, P.nullspace_damping_margin)
+    r.null_inertia, r.null_stiffness, r.null_damping = inertia, K, D
+    tau_null = K * (c.offset + (c.spring_cmd * P.dt) * dq) + D * (c.velocity + c.damp_cmd * dq - dq_meas)
+    keep_out_torque(t.problem, r, P, t.memory, dq_meas, tau_null)  # (the keep-out rows' wall: every strategy)
+    if not ok:
+        c.tau[:] = s.g
+        return
+    tau = s.g + project_torque(s.J, W, LL, tau_null)
+    if P.friction_compensation > 0.0:
+        tau += selfmotion_friction(s.J, W, LL, dq_meas, P.friction_tau_max, P.friction_beta, P.friction_compensation)
+    c.tau[:] = tau
+
+
+@njit(cache=True)
 def finish_tick(q, dq_meas, tick):
     """A tick after its QP, on the tick record: its solution's ``q̇`` (or the safe one the solver left after a
-    failure), ``q_des = q + dt·q̇`` and ``τ = g(q) + Nᵀτ_null`` (N·m; ``N`` the dynamically consistent
-    null-space projector, :func:`qpnso.linalg.dynamically_consistent_projection`; ``τ_null`` the strategy's
-    law in its command, against the measured ``dq_meas``), written into its command; then every tick's last
-    step (:func:`finish_command`).  Returns the status bits: the report's, :func:`answer_bits` of a solved QP
-    and the finishing ones, and :data:`~qpnso.control.flags.PREDICTION_MISSED` (internal) when the solved
-    ``q̇`` of a tool that is not limited is farther than :func:`~qpnso.control.state.prediction_tolerance` from
-    the one level 1's second-order term was taken along (a limited tool is off its reference anyway)."""
+    failure), ``q_des = q + dt·q̇`` and ``τ = g(q) + Nᵀτ_null + τ_fc`` (:func:`command_torque`, against the
+    measured ``dq_meas``), written into its command; then every tick's last step (:func:`finish_command`).
+    Returns the status bits: the report's, :func:`answer_bits` of a solved QP and the finishing ones, and
+    :data:`~qpnso.control.flags.PREDICTION_MISSED` (internal) when the solved ``q̇`` of a tool that is not limited
+    is farther than :func:`~qpnso.control.state.prediction_tolerance` from the one level 1's second-order term
+    was taken along (a limited tool is off its reference anyway)."""
     t = tick[0]
     s, P, S, r, c, pb = t.state, t.params, t.solution, t.report, t.command, t.problem
     dq = c.dq
@@ -462,9 +502,7 @@ def finish_tick(q, dq_meas, tick):
             dq[i] = min(max(dq[i], pb.lb[i]), pb.ub[i])
     c.q_des[:] = q + P.dt * dq
     bounded_change(q, c, t.memory.dq_prev, P)  # (a stopped QP's zero: reached at ddq_max)
-    tau_null = c.spring + c.stiffness_dt * dq + c.damping * (c.damp_cmd * dq - dq_meas)
-    keep_out_torque(t.problem, r, P, t.memory, dq_meas, tau_null)  # (the keep-out rows' wall: every strategy)
-    c.tau[:] = s.g + dynamically_consistent_projection(s.A, s.J, tau_null)[0]
+    command_torque(dq_meas, t)
     bits = r.bits
     if S.outcome == SOLVED:
         bits |= answer_bits(S.tool_residual, soft_violation(t.problem, dq, r.obstacle_first, r.obstacle_rows))

@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 from conftest import ALL_ROBOTS
 
-STRATEGIES = ("qp", "damped", "fixed", "elbow-up", "gradient", "rom")
+from qpnso.control.config import STRATEGIES
 
 _CHILD = textwrap.dedent(
     r"""

@@ -101,17 +101,43 @@ def test_recorded_felt_mass_and_friction_are_the_plants(lwr) -> None:
 
 
 # ------------------------------------------------------------------ the hold protocol
-def test_hold_protocol_the_held_tool_stays_while_qp_reconfigures() -> None:
-    """Must hold (no model error): the surgeon holds the tool while qp moves the elbow by tens of degrees; the
-    tool moves < 1 mm and the hand does < 0.05 J.  The plant's joint friction is off here (its Coulomb torque
-    acts through the hand whatever the projector; the README gives that run's figures): this isolates the
-    dynamically consistent projector, which the old plant's extra rotor inertia broke (84 mm, 7 J)."""
-    quiet = SimulationConfig(surgeon={"tremor_rms_m": 0.0}, plant_friction=False)
-    run = simulate_scenario("hold", "qp", duration_scale=0.5, simulation=quiet)  # (3 s of the 6: 23° of elbow)
-    s = run.summary
-    assert s["elbow_mobility_deg"] > 20.0 and "smoothness" not in s  # (a hold has no segment)
+@pytest.fixture(scope="module")
+def hold_runs() -> dict[float, dict]:
+    """The hold protocol's summaries (scenario ``hold``, 6 s, no tremor, the default plant: the rigid-body
+    LWR4+ with its joints' Coulomb friction) for qp with the self-motion's friction compensation on (1.0) and off
+    (0.0)."""
+    quiet = SimulationConfig(surgeon={"tremor_rms_m": 0.0})
+    return {
+        fc: simulate_scenario("hold", "qp", settings={"friction_compensation": fc}, simulation=quiet).summary
+        for fc in (1.0, 0.0)
+    }
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured 8.3 mm and 0.13 J (elbow 49°) with the compensation, 32 mm and 0.94 J without: the smooth "
+    "model's f̂ (β = 20 s/rad: half of τ_max at 0.05 rad/s) cannot break the plant's hard Coulomb friction on the "
+    "joints the self-motion turns slowly (joint 7 stays stuck), so the tool gives way; with β = 1000 for the "
+    "compensation alone, 2.2 mm and 0.003 J",
+)
+def test_hold_protocol_the_held_tool_stays_while_qp_reconfigures_against_friction(hold_runs) -> None:
+    """Must hold (issue 32, no model error): on the default plant, friction on, the surgeon holds the tool while
+    qp turns the elbow ≥ 20° in 6 s; the tool moves < 1 mm and the hand does < 0.05 J."""
+    s = hold_runs[1.0]
+    assert s["elbow_mobility_deg"] >= 20.0 and "smoothness" not in s  # (a hold has no segment)
     assert s["tool_displacement_max_m"] < 1e-3
     assert s["hand_work_J"] < 0.05
+
+
+def test_friction_compensation_cuts_the_held_tools_motion_and_the_hands_work(hold_runs) -> None:
+    """The hold protocol with the plant's friction: compensating the self-motion's friction (at its measured
+    velocity, qpnso.control.selfmotion) lets the elbow turn further (≥ 20°) while the held tool moves less than
+    half as far and the hand does less than a quarter of the work (measured: 8.3 against 32 mm, 0.13 against
+    0.94 J; 49° against 35°)."""
+    on, off = hold_runs[1.0], hold_runs[0.0]
+    assert on["elbow_mobility_deg"] >= max(20.0, off["elbow_mobility_deg"])
+    assert on["tool_displacement_max_m"] < 0.5 * off["tool_displacement_max_m"]
+    assert on["hand_work_J"] < 0.25 * off["hand_work_J"]
 
 
 def test_the_hold_scenario_is_a_hold() -> None:

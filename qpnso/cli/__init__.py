@@ -94,7 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="start configuration in RADIANS, comma-separated (default: found for the first pose, elbow up)",
     )
-    p.add_argument("--strategy", default=None, help="qp (default), damped, fixed, elbow-up, gradient, rom")
+    p.add_argument(
+        "--strategy", default=None, help="qp (default), damped, fixed, elbow-up, gradient, gradient-impedance, rom"
+    )
     p.add_argument("--config", default=None, help="TOML file of controller settings (flags override it)")
     p.add_argument("--dt", type=float, default=None, help="tick length, s (default 0.001)")
     p.add_argument("--out", default="result.npz", help="per-tick arrays (NumPy .npz)")

@@ -453,7 +453,7 @@ def test_an_unexpected_exception_stops_the_joints_and_says_why(robot, monkeypatc
     def broken(*args):
         raise RuntimeError("boom")
 
-    monkeypatch.setattr(ctrl.strategy, "nullspace_torque", broken)
+    monkeypatch.setattr(ctrl.strategy, "nullspace_law", broken)
     cmd = ctrl.step(Q1)  # no traceback reaches the caller
     assert cmd.status & Status.INTERNAL_ERROR and not cmd.ok and "RuntimeError: boom" in cmd.message
     np.testing.assert_array_equal(cmd.dq, 0.0)

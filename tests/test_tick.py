@@ -136,7 +136,9 @@ def test_low_pass() -> None:
 
 
 def test_finish_tick_is_gravity_plus_the_projected_impedance(robot) -> None:
-    """τ = g + (I − J̄J)ᵀ(K·dt·q̇ + D(q̇ − q̇_meas)) with J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ from Pinocchio, inverted by hand."""
+    """τ = g + (I − J̄J)ᵀ(K·dt·q̇ + D(q̇ − q̇_meas)) + f̂((I − J̄J)q̇_meas) with J̄ = A⁻¹Jᵀ(JA⁻¹Jᵀ)⁻¹ from Pinocchio,
+    inverted by hand, D = joint_damping within its bound 0.5·m/dt (m = zᵀAz, z the unit null vector by SVD) and
+    f̂ the robot's friction model (the self-motion's friction compensated, un-projected)."""
     rng = np.random.default_rng(2)
     ctrl = Controller(robot, ControllerConfig(strategy="qp", ddq_max=1e9))  # (dq far from the last command)
     q = robot.random_q(rng, margin=0.2)
@@ -153,7 +155,10 @@ def test_finish_tick_is_gravity_plus_the_projected_impedance(robot) -> None:
     g = pin.computeGeneralizedGravity(robot.model, robot.data, q)
     Ai = np.linalg.inv(A)
     Jbar = Ai @ J.T @ np.linalg.inv(J @ Ai @ J.T)
-    expected = g + (np.eye(7) - Jbar @ J).T @ (K * DT * dq + ctrl.config.joint_damping * (dq - dq_meas))
+    z = np.linalg.svd(J)[2][-1]
+    D = min(ctrl.config.joint_damping, 0.5 * float(z @ A @ z) / DT)
+    N = np.eye(7) - Jbar @ J
+    expected = g + N.T @ (K * DT * dq + D * (dq - dq_meas)) + robot.friction_torque(N @ dq_meas)
     c = rec.command[0]
     # JA⁻¹Jᵀ is regularised by 1e-12 of its trace (linalg.py): agreement to its conditioning
     np.testing.assert_allclose(c["tau"], expected, rtol=0, atol=1e-6 * np.linalg.norm(expected))

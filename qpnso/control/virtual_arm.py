@@ -73,12 +73,16 @@ class VirtualArm:
 
     def advance(self, dt: float) -> None:
         """One tick of ``dt`` s of [M 20]–[M 22] (module docstring): the self-motion velocity relaxed exactly
-        towards the saturated gradient velocity (:func:`saturated_gradient_velocity`), the position by its
-        integral; a joint that would leave its limits stops there (the virtual arm at rest)."""
+        towards the saturated gradient velocity (:func:`saturated_gradient_velocity`; a cost gradient that is not
+        finite, Λ undefined at a singular J, counts as zero, as in the tick), the position by its integral; a
+        joint that would leave its limits stops there (the virtual arm at rest)."""
         q = self.q
         z = self._null_basis(self.robot.jacobian(q))
         inertia = z.T @ self.robot.mass_matrix(q) @ z  # M = ZᵀAZ (kg·m²)
-        target = z.T @ saturated_gradient_velocity(self.cost.gradient(q), self.kp, self.kd, self.omega_max)
+        gradient = self.cost.gradient(q)
+        if not np.all(np.isfinite(gradient)):
+            gradient = np.zeros_like(gradient)
+        target = z.T @ saturated_gradient_velocity(gradient, self.kp, self.kd, self.omega_max)
         lam, vec = np.linalg.eigh(inertia)
         rate = self.kd / lam  # 1/s: the eigen-rates of k_d M⁻¹
         decay = vec @ np.diag(np.exp(-rate * dt)) @ vec.T
@@ -88,9 +92,9 @@ class VirtualArm:
         self.dq = z @ (target + decay @ nu)
         q_new = q + step
         inside = np.clip(q_new, self.robot.q_min, self.robot.q_max)
-        if not np.array_equal(inside, q_new):
+        if not (np.array_equal(inside, q_new) and np.all(np.isfinite(self.dq))):
             self.dq[:] = 0.0
-        self.q = inside
+        self.q = inside if np.all(np.isfinite(inside)) else q
 
     def _pose_error(self, q: np.ndarray, R: np.ndarray, p: np.ndarray) -> np.ndarray:
         """``(p − p(q), log₃(R R(q)ᵀ))`` (m, rad; world frame): how far the tool at ``q`` is from the pose."""

@@ -351,19 +351,20 @@ def test_smooth_friction_is_the_robots_model(bare) -> None:
 
 # ------------------------------------------------------------------ [M]'s law as [M] ran it
 def test_the_virtual_arm_is_anchored_at_the_measured_pose_and_relaxes_as_the_law(bare) -> None:
-    """Anchored, the virtual arm's tool is at the measured pose (Pinocchio, 1e-10); one tick of [M 20]–[M 22]
-    relaxes its self-motion velocity as the exact solution of ``m ν̇ = −k_d(ν − ν_t)`` (m = zᵀAz, ν_t the
-    saturated gradient velocity's null part, computed here independently) and moves it along z."""
+    """Anchored, the virtual arm's tool is at the measured pose (Pinocchio; 1e-10 the next tick); one tick of
+    [M 20]–[M 22] relaxes its self-motion velocity as the exact solution of ``m ν̇ = −k_d(ν − ν_t)`` (m = zᵀAz,
+    ν_t the saturated gradient velocity's null part, computed here independently) and moves it along z."""
     ctrl = Controller(bare, ControllerConfig(strategy="gradient-impedance"))
     cfg = ctrl.config
     arm = VirtualArm(bare, ctrl.cost, cfg.gradient_kp, cfg.gradient_kd, cfg.gradient_omega_max)
     q = hold_start(bare)
     arm.reset(q + np.radians([2, -1, 3, 0.5, -2, 1, 1]))  # (a virtual arm off the measured pose)
     pose = bare.tool_pose(q)
-    assert arm.anchor(pose.rotation, pose.translation)
-    there = bare.tool_pose(arm.q)
-    assert np.abs(there.translation - pose.translation).max() < 1e-10
-    assert np.abs(pin.log3(there.rotation @ pose.rotation.T)).max() < 1e-10
+    for tol in (1e-6, 1e-10):  # (a step from below 1e-4 leaves its residual to the next tick)
+        assert arm.anchor(pose.rotation, pose.translation)
+        there = bare.tool_pose(arm.q)
+        assert np.abs(there.translation - pose.translation).max() < tol
+        assert np.abs(pin.log3(there.rotation @ pose.rotation.T)).max() < tol
     z = null_basis(bare.jacobian(arm.q))[:, 0]
     arm.dq = 0.4 * z
     m = float(z @ bare.mass_matrix(arm.q) @ z)

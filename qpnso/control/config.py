@@ -101,7 +101,9 @@ class ControllerConfig:
     # most μ·m/dt, m (kg·m²) the self-motion's inertia this tick (1: deadbeat; 2: unstable), and at least K·dt for
     # a stiffness K (N·m/rad), cut to D/dt where the two meet (control/selfmotion.py; Command.nullspace_damping)
     friction_compensation: float = 1.0  # in [0, 1]: the fraction of the controller's friction model [M 23]
-    # compensated along the measured velocity's self-motion part N q̇ (never along the surgeon's motion); 0: off
+    # compensated along the measured velocity's self-motion part N q̇ (never along the surgeon's motion); 0: off,
+    # as for a plant without joint friction (its slope at rest, τ_max·β·2/π = 19 N·m·s/rad on the LWR4+, would
+    # then drive the self-motion)
     posture_stiffness: float = 30.0  # N·m/rad, FOP / elbow-up
     posture_gain: float = 2.0  # 1/s, kinematic rate towards a posture
     fixed_posture: tuple[float, ...] | None = None  # rad; None: the reset posture

@@ -21,6 +21,8 @@ Protocol (the paper's, with what it does not publish stated as ours):
 * the fixed posture is the cost optimum on the self-motion of the area's centre pose inside the continuity
   interval of elbow up (:func:`.work_areas.fixed_posture`), at the run's rotor inertia; fixed, active, qp and
   the ablation start there, damped, the controls and elbow-up start elbow up (ns = 0);
+* the paper's four strategies run as the paper ran them, without qpnso's compensation of the self-motion's
+  friction (:data:`AS_THE_PAPER_RAN`); qp and the ablation with it (qpnso's default);
 * the damping ratio's inertia is the self-motion's: ``D = 2·0.1·√(100·uᵀA u)`` with ``u`` the unit
   null-space direction at the fixed posture;
 * the plant has :data:`qpnso.lab.experiments.trials.EXPERIMENT_MODEL_ERROR` (one draw per run).
@@ -59,6 +61,9 @@ CONTROLS = ("damped-again", "damped-light")
 """The controls: negative (damped against itself) and positive (damped on a lighter robot)."""
 ACTIVE_STRATEGY = "gradient-impedance"
 """qpnso's name of [M]'s active law as the paper ran it (the gradient law commanded as a joint impedance)."""
+AS_THE_PAPER_RAN = {"friction_compensation": 0.0}
+"""The paper's four strategies ran without qpnso's compensation of the self-motion's friction (and damped, with
+no null-space damping, would be driven by it wherever the plant's friction is below the model's)."""
 LIGHT_MASS_FACTOR = 0.7
 """The positive control's link masses and inertias (controller and plant): felt mass −30 % (issue 32)."""
 
@@ -183,12 +188,12 @@ def work_area_summary(opts: MassFrictionOptions) -> list[dict[str, Any]]:
 
 def controller_values(strategy: str, area: WorkArea, opts: MassFrictionOptions) -> dict[str, Any]:
     """The controller settings of ``strategy`` (or control) in this experiment."""
-    impedance = {"posture_stiffness": opts.posture_stiffness, "joint_damping": area.damping}
+    impedance = {"posture_stiffness": opts.posture_stiffness, "joint_damping": area.damping, **AS_THE_PAPER_RAN}
     values: dict[str, dict[str, Any]] = {
-        "damped": {"strategy": "damped", "joint_damping": 0.0},
+        "damped": {"strategy": "damped", "joint_damping": 0.0, **AS_THE_PAPER_RAN},
         "elbow-up": {"strategy": "elbow-up", **impedance},
         "fixed": {"strategy": "fixed", "fixed_posture": tuple(area.q_opt.tolist()), **impedance},
-        "active": {"strategy": ACTIVE_STRATEGY, **impedance},
+        "active": {"strategy": ACTIVE_STRATEGY, **AS_THE_PAPER_RAN},
         "qp": {"strategy": "qp"},
         "qp-zero": {"strategy": "qp", "weights": {"mass": 0.0, "friction_force": 0.0}},
     }

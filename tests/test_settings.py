@@ -71,7 +71,9 @@ def test_unknown_keys_are_listed_with_the_valid_ones() -> None:
         qpnso.ConfigError, match=r"unknown keys 'colour', 'shape'; valid keys: compile, cost_filter_time"
     ):
         ControllerConfig.from_dict({"shape": 1, "colour": "red"})
-    with pytest.raises(qpnso.ConfigError, match=r"surgeon: unknown key 'stifness'; valid keys: correction_force_max, correction_rate, damping, "):
+    with pytest.raises(
+        qpnso.ConfigError, match=r"surgeon: unknown key 'stifness'; valid keys: correction_force_max, correction_rate, "
+    ):
         SimulationConfig(surgeon={"stifness": 3.0})
 
 

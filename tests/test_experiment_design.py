@@ -155,3 +155,20 @@ def test_elbow_verdicts_are_untestable_where_the_plant_or_the_motion_cannot_say(
     assert still[2]["verdict"] == "untestable" and "no controller can meet" in still[2]["why"]
     moving = analysis.elbow_verdicts({"A": block(30.0, 900, 100), "B": block(30.0, 900, 100)}, rows)
     assert moving[1]["verdict"] == "not reproduced" and moving[2]["verdict"] == "not reproduced"
+
+
+def test_a_reading_whose_controls_fail_is_set_aside_and_the_other_decides() -> None:
+    """Pre-registration v2: a claim is judged on the readings whose work metric passed its controls; with none,
+    it is untestable."""
+    rows = synthetic_rows(0.7)
+    blind = synthetic_rows(1.0, seed=1)
+    for r, b in zip(rows, blind):  # (the measured reading blind to the felt mass, the intended one not)
+        r["work_measured"] = b["work_measured"]
+    s = {"controls": mfa.control_stats(rows, 1)}
+    assert not s["controls"]["work_measured"]["positive_ok"] and s["controls"]["work_nominal"]["positive_ok"]
+    kept, blockers, aside = mfa.valid_readings(s, {"measured": True, "nominal": False})
+    assert kept == {"nominal": False} and blockers == [] and "measured reading set aside" in aside
+    blind = {"controls": mfa.control_stats(synthetic_rows(1.0), 1)}
+    kept, blockers, aside = mfa.valid_readings(blind, {"measured": True, "nominal": True})
+    assert len(blockers) == 2 and aside == ""
+    assert analysis.three_valued("c", kept, "m", blockers)["verdict"] == "untestable"

@@ -14,7 +14,8 @@ Protocol (the paper's, with what it does not publish stated as ours):
   the gradient law [M 20]–[M 22] forward simulated and commanded as that impedance, :data:`ACTIVE_STRATEGY`),
   ``qp`` (qpnso: 50 % mass, 50 % friction force) and the ablation ``qp-zero`` (``qp`` with every cost weight
   0: the ROM rows and damping only);
-* controls (:data:`CONTROLS`, run on ``control_reps`` repetitions): ``damped-again`` (damped once more, other
+* controls (:data:`CONTROLS`, run on the first ``control_reps`` repetitions, by default all three: the groups'
+  own size): ``damped-again`` (damped once more, other
   noise draws: the negative control, a strategy against itself) and ``damped-light`` (damped on the robot with
   every link's mass and inertia times :data:`LIGHT_MASS_FACTOR`, controller and plant alike: a known change in
   felt mass, the positive control);
@@ -86,7 +87,8 @@ class MassFrictionOptions(PlantOptions):
     damping_ratio: float = 0.1
     strategies: tuple[str, ...] = STRATEGIES
     controls: tuple[str, ...] = CONTROLS
-    control_reps: int = 1
+    control_reps: int = 3  # the controls and the ablation run the first control_reps repetitions (pre-registration
+    # v2: the groups' own size; v1 ran 1, and its positive control lacked the power to be detected)
 
     def __post_init__(self) -> None:
         super().__post_init__()

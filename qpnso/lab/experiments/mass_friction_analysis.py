@@ -154,23 +154,39 @@ def _medians(block: dict[str, Any]) -> str:
     return ", ".join(f"{k} {v['median']:.3f}" for k, v in block["spread"].items())
 
 
+def valid_readings(s: dict[str, Any], judged: dict[str, bool]) -> tuple[dict[str, bool], list[str], str]:
+    """``(kept, blockers, set_aside)``: the readings of ``judged`` whose work metric passed its controls (a reading
+    that fails them cannot say anything and is set aside, pre-registration v2); when none passed, all of them with
+    each failure as a blocker (the claim is untestable)."""
+    failed = {r: why for r in judged if (why := controls_failed(s, f"work_{r}"))}
+    kept = {r: v for r, v in judged.items() if r not in failed}
+    if not kept:
+        return judged, [f"{r} reading: {why}" for r, why in failed.items()], ""
+    return kept, [], "; ".join(f"the {r} reading set aside ({why})" for r, why in failed.items())
+
+
+def _with(measured: str, set_aside: str) -> str:
+    return f"{measured}; {set_aside}" if set_aside else measured
+
+
 def mass_friction_verdicts(s: dict[str, Any]) -> list[dict[str, str]]:
-    """The paper's three claims (its Table I, Fig. 10) under both readings, with the controls and the premise,
-    then qpnso's claim and guard."""
+    """The paper's three claims (its Table I, Fig. 10) under the readings whose controls passed
+    (:func:`valid_readings`), with the premise, then qpnso's claim and guard."""
     works = {r: s[f"work_{r}"] for r in READINGS}
     premise = "" if s["premise_holds"] else "the fixed posture does not differ enough from elbow up in every area"
-    work_blockers = [f"{r} reading: {why}" for r in READINGS if (why := controls_failed(s, f"work_{r}"))]
     measured = "; ".join(f"{r}: {_medians(w)}, Kruskal–Wallis p = {w['kruskal']['p']:.3g}" for r, w in works.items())
-    m1 = {r: lower_and_significant(w, ("fixed", "active"), ("damped", "elbow-up")) for r, w in works.items()}
-    m3 = {r: bool(w["dunn_sidak_p"]["fixed"]["active"] >= ALPHA) for r, w in works.items()}
+    m1, b1, aside = valid_readings(
+        s, {r: lower_and_significant(w, ("fixed", "active"), ("damped", "elbow-up")) for r, w in works.items()}
+    )
+    m3, b3, _ = valid_readings(s, {r: bool(w["dunn_sidak_p"]["fixed"]["active"] >= ALPHA) for r, w in works.items()})
     torque = s["orthogonal_torque"]
     verdicts = [
         three_valued(
             "M1: fixed and active need significantly less work than damped and elbow-up (Kruskal–Wallis p < 0.01, "
             "Dunn–Šidák at 0.01)",
             m1,
-            measured,
-            [premise, *work_blockers],
+            _with(measured, aside),
+            [premise, *b1],
         ),
         three_valued(
             "M2: the moment orthogonal to the motion is significantly higher with damped and elbow-up than with fixed "
@@ -183,32 +199,41 @@ def mass_friction_verdicts(s: dict[str, Any]) -> list[dict[str, str]]:
             "M3: the fixed pre-optimised posture performs nearly as well as active optimisation (no significant "
             "difference in work)",
             m3,
-            "; ".join(
-                f"{r}: Dunn–Šidák p(fixed, active) = {w['dunn_sidak_p']['fixed']['active']:.3g}"
-                for r, w in works.items()
+            _with(
+                "; ".join(
+                    f"{r}: Dunn–Šidák p(fixed, active) = {w['dunn_sidak_p']['fixed']['active']:.3g}"
+                    for r, w in works.items()
+                ),
+                aside,
             ),
-            [premise, *work_blockers],
+            [premise, *b3],
         ),
     ]
-    return verdicts + qpnso_verdicts(s, work_blockers)
+    return verdicts + qpnso_verdicts(s)
 
 
-def qpnso_verdicts(s: dict[str, Any], work_blockers: list[str]) -> list[dict[str, str]]:
-    """qpnso's own claim (qp needs less work than damped) under both readings, and the guard."""
+def qpnso_verdicts(s: dict[str, Any]) -> list[dict[str, str]]:
+    """qpnso's own claim (qp needs less work than damped) under the readings whose controls passed, and the
+    guard."""
     if "qp" not in s["work_measured_all"].get("spread", {}):
         return []
     works = {r: s[f"work_{r}_all"] for r in READINGS}
-    q1 = {r: lower_and_significant(w, ("qp",), ("damped",)) for r, w in works.items()}
+    q1, blockers, aside = valid_readings(
+        s, {r: lower_and_significant(w, ("qp",), ("damped",)) for r, w in works.items()}
+    )
     out = [
         three_valued(
             "Q1 (qpnso): qp needs significantly less work than damped",
             q1,
-            "; ".join(
-                f"{r}: qp {w['spread']['qp']['median']:.3f}, damped {w['spread']['damped']['median']:.3f}, "
-                f"Dunn–Šidák p = {w['dunn_sidak_p']['qp']['damped']:.3g}"
-                for r, w in works.items()
+            _with(
+                "; ".join(
+                    f"{r}: qp {w['spread']['qp']['median']:.3f}, damped {w['spread']['damped']['median']:.3f}, "
+                    f"Dunn–Šidák p = {w['dunn_sidak_p']['qp']['damped']:.3g}"
+                    for r, w in works.items()
+                ),
+                aside,
             ),
-            work_blockers,
+            blockers,
         )
     ]
     g = s["guard"]

@@ -172,3 +172,40 @@ def test_a_reading_whose_controls_fail_is_set_aside_and_the_other_decides() -> N
     kept, blockers, aside = mfa.valid_readings(blind, {"measured": True, "nominal": True})
     assert len(blockers) == 2 and aside == ""
     assert analysis.three_valued("c", kept, "m", blockers)["verdict"] == "untestable"
+
+
+def test_the_guard_holds_at_1_2_times_and_fails_above_it_or_with_a_stopped_trial() -> None:
+    """qp against damped: medians of path and hand work; 1.2× holds, 1.25× fails, a stopped trial fails."""
+
+    def rows(path_ratio: float, work_ratio: float, error: str = "") -> list[dict]:
+        out = [{"strategy": "damped", "path_length_m": 1.0, "hand_work_J": 2.0, "error": ""} for _ in range(3)]
+        out += [{"strategy": "qp", "path_length_m": path_ratio, "hand_work_J": 2.0 * work_ratio, "error": ""}] * 3
+        out[-1] = {**out[-1], "error": error}
+        return out
+
+    assert mfa.guard(rows(1.2, 1.0))["holds"]
+    g = mfa.guard(rows(1.25, 1.0))
+    assert g["path_ratio"] == pytest.approx(1.25) and not g["holds"]
+    assert not mfa.guard(rows(1.0, 1.21))["holds"]
+    stopped = mfa.guard(rows(1.0, 1.0, "InputError: a joint past its limit"))
+    assert stopped["stopped"] == {"qp": 1, "damped": 0} and not stopped["holds"]
+
+
+def test_a_malformed_preregistration_is_named(tmp_path) -> None:
+    bad = tmp_path / "p.toml"
+    bad.write_text('[[area]]\ncenter_m = [0.4, 0.0]\npitch_deg = "steep"\n')
+    with pytest.raises(ConfigError, match="the pre-registration file is malformed"):
+        wa.load_preregistration(bad)
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"strategies": ("damped", "walking")}, "unknown group 'walking'"),
+        ({"strategies": ("qp",)}, "must include 'damped'"),
+        ({"control_reps": 0}, "control_reps must be >= 1"),
+    ],
+)
+def test_bad_groups_are_named(options, message) -> None:
+    with pytest.raises(ConfigError, match=message):
+        MassFrictionOptions(**options)

@@ -116,8 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=cmd_solve)
 
-    p = sub.add_parser("simulate", help="hands-on guidance simulation of a scenario (A, B, microscope)")
-    p.add_argument("--scenario", default="A", help="A, B, microscope or a scenario .toml file")
+    p = sub.add_parser("simulate", help="hands-on guidance simulation of a scenario (A, B, microscope, hold)")
+    p.add_argument("--scenario", default="A", help="A, B, microscope, hold or a scenario .toml file")
     p.add_argument("--strategy", default=None, help="strategy (default qp)")
     p.add_argument("--config", default=None, help="TOML file of controller settings")
     p.add_argument("--duration-scale", type=float, default=1.0, help="run only this fraction of the path")
@@ -134,7 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("view", help="3-D replay of a run in the browser: a live server, or one HTML page (--html)")
     p.add_argument("result", nargs="?", default=None, help="a result.npz (of qpnso solve or simulate)")
-    p.add_argument("--scenario", default=None, help="instead of a file: simulate a scenario (A, B, microscope, .toml)")
+    p.add_argument(
+        "--scenario", default=None, help="instead of a file: simulate a scenario (A, B, microscope, hold, .toml)"
+    )
     p.add_argument("--strategy", default=None, help="with --scenario: the strategy (default: the scenario's, qp)")
     p.add_argument("--duration-scale", type=float, default=None, help="with --scenario: run only this fraction")
     p.add_argument("--ignore-obstacles", action="store_true", help=f"with --scenario: {IGNORE_OBSTACLES_HELP}")
@@ -189,7 +191,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="mass-friction: comma-separated strategies and controls to run (default all; 'damped' required)",
     )
     p.add_argument(
-        "--control-reps", type=int, default=None, help="mass-friction: repetitions of the controls and ablation (1)"
+        "--control-reps",
+        type=int,
+        default=None,
+        help="mass-friction: repetitions the controls and the ablation run (default 3: every one, the groups' size)",
     )
     p.add_argument("--duration-scale", type=float, default=None, help="elbow: run only this fraction of each path")
     p.add_argument("--no-model-error", action="store_true", help="the plant is the controller's model exactly")

@@ -8,7 +8,7 @@ times in s; forces in N.  Every function checks its input and raises
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+from typing import Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -253,13 +253,16 @@ def absolute_work(force: np.ndarray, velocity: np.ndarray, t: np.ndarray) -> flo
     return float(np.sum(0.5 * (power[1:] + power[:-1]) * np.diff(t)))
 
 
-def relative_work(work_per_metre: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+def relative_work(
+    work_per_metre: Mapping[str, np.ndarray], reference: Collection[str] | None = None
+) -> dict[str, np.ndarray]:
     """[M 24] normalisation for one subject: each controller's trials (W/L per
-    trial) divided by the largest per-controller mean W/L."""
+    trial) divided by the largest per-controller mean W/L among the controllers ``reference`` (default: all)."""
     arrays = {k: _array(np.atleast_1d(v), f"work_per_metre[{k!r}]", 1) for k, v in work_per_metre.items()}
-    if not arrays:
-        raise InputError("relative_work needs at least one controller")
-    top = max(float(v.mean()) for v in arrays.values())
+    means = [float(v.mean()) for k, v in arrays.items() if reference is None or k in reference]
+    if not means:
+        raise InputError("relative_work needs at least one controller (of the reference)")
+    top = max(means)
     if not top > 0:
         raise InputError("the largest mean work per metre is not positive")
     return {k: v / top for k, v in arrays.items()}

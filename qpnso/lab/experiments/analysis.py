@@ -11,10 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from qpnso.errors import ConfigError
+from qpnso.errors import ConfigError, InputError
 from qpnso.lab.experiments import statistics as st
 from qpnso.lab.experiments.elbow import SCENARIOS
 from qpnso.lab.experiments.elbow import STRATEGIES as ELBOW_STRATEGIES
+from qpnso.lab.metrics import relative_work
 
 
 def groups(rows: list[dict], key: str, names, **where: Any) -> dict[str, np.ndarray]:
@@ -24,7 +25,7 @@ def groups(rows: list[dict], key: str, names, **where: Any) -> dict[str, np.ndar
 
 
 def normalise_per_subject(rows: list[dict], key: str, out_key: str, reference=None) -> None:
-    """[M 24] per subject (as :func:`qpnso.lab.metrics.relative_work`): each trial's ``key`` over the largest
+    """[M 24] per subject (:func:`qpnso.lab.metrics.relative_work`): each trial's ``key`` over the largest
     per-strategy mean of that subject's trials among the strategies ``reference`` (default: all), written as
     ``out_key`` (NaN for a trial without a value)."""
     for r in rows:
@@ -34,15 +35,13 @@ def normalise_per_subject(rows: list[dict], key: str, out_key: str, reference=No
         by_strategy: dict[str, list[dict]] = {}
         for r in mine:
             by_strategy.setdefault(r["strategy"], []).append(r)
-        ref = {k: v for k, v in by_strategy.items() if reference is None or k in reference}
-        if not ref:
+        try:
+            scaled = relative_work({k: np.array([r[key] for r in v]) for k, v in by_strategy.items()}, reference)
+        except InputError:  # (no reference strategy for this subject, or its largest mean is not positive)
             continue
-        top = max(float(np.mean([r[key] for r in v])) for v in ref.values())  # [M 24]: the largest mean
-        if not top > 0:
-            continue
-        for trials in by_strategy.values():
-            for r in trials:
-                r[out_key] = float(r[key] / top)
+        for name, trials in by_strategy.items():
+            for r, value in zip(trials, scaled[name]):
+                r[out_key] = float(value)
 
 
 def three_valued(claim: str, judged: dict[str, bool], measured: str, blockers: list[str], why_not: str = "") -> dict:
@@ -67,6 +66,8 @@ MECHANISM_MIN_DP_RANGE_DEG = 20.0
 """deg: [E] B's contrast needs an elbow that drifts: DP's median Δ in scenario A at least this (issue 32)."""
 SMOOTHNESS_THRESHOLD = 500.0
 """[E 14]'s S per segment the elbow paper's claim E3 puts every smooth strategy under."""
+DP_B_SMOOTHNESS_MIN = 1100.0
+"""[E 14]'s S per segment E3 puts DP above in scenario B."""
 
 
 def compare(g: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -79,7 +80,8 @@ def compare(g: dict[str, np.ndarray]) -> dict[str, Any]:
     }
 
 
-def _stopped(rows: list[dict], names) -> dict[str, int]:
+def stopped(rows: list[dict], names) -> dict[str, int]:
+    """How many trials of each strategy in ``names`` stopped (a row with an error)."""
     return {n: sum(1 for r in rows if r["strategy"] == n and r["error"]) for n in names}
 
 
@@ -108,7 +110,7 @@ def elbow_stats(all_rows: list[dict]) -> dict[str, Any]:
     out: dict[str, Any] = {"trials": len(rows), "quiet_trials": len(quiet), "stopped": {}}
     for sc in SCENARIOS:
         block: dict[str, Any] = {}
-        out["stopped"][sc] = _stopped([r for r in rows if r["scenario"] == sc], ELBOW_STRATEGIES)
+        out["stopped"][sc] = stopped([r for r in rows if r["scenario"] == sc], ELBOW_STRATEGIES)
         for key in ("elbow_mobility_deg", "constraint_proximity_deg"):
             g = groups(rows, key, ELBOW_STRATEGIES, scenario=sc)
             block[key] = _elbow_tests(g, paper)
@@ -160,7 +162,7 @@ def elbow_verdicts(s: dict[str, Any], rows: list[dict]) -> list[dict[str, str]]:
     e3 = (
         all(smooth[sc][k] < SMOOTHNESS_THRESHOLD for sc in SCENARIOS for k in ("FOP", "NSO"))
         and smooth["A"]["DP"] < SMOOTHNESS_THRESHOLD
-        and (smooth["B"]["DP"] > 1100)
+        and (smooth["B"]["DP"] > DP_B_SMOOTHNESS_MIN)
     )
     dp_range = med(a_delta, "DP")
     no_drift = (

@@ -31,6 +31,7 @@ from qpnso.lab.experiments.analysis import (
     groups,
     normalise_per_subject,
     spread_cell,
+    stopped,
     three_valued,
     verdict_lines,
 )
@@ -97,12 +98,12 @@ def guard(rows: list[dict]) -> dict[str, Any]:
     }
     path = med[("qp", "path_length_m")] / med[("damped", "path_length_m")]
     work = med[("qp", "hand_work_J")] / med[("damped", "hand_work_J")]
-    stopped = {g: sum(1 for r in rows if r["strategy"] == g and r["error"]) for g in ("qp", "damped")}
-    ok = path <= GUARD_RATIO and work <= GUARD_RATIO and not any(stopped.values())
-    return {"path_ratio": path, "work_ratio": work, "stopped": stopped, "holds": bool(ok)}
+    halted = stopped(rows, ("qp", "damped"))
+    ok = path <= GUARD_RATIO and work <= GUARD_RATIO and not any(halted.values())
+    return {"path_ratio": path, "work_ratio": work, "stopped": halted, "holds": bool(ok)}
 
 
-def mass_friction_stats(rows: list[dict], areas: list[dict[str, Any]], control_reps: int = 1) -> dict[str, Any]:
+def mass_friction_stats(rows: list[dict], areas: list[dict[str, Any]], control_reps: int) -> dict[str, Any]:
     """Statistics, controls, guard and verdicts of the mass/friction experiment; ``areas``: the work areas'
     premise at the run's rotor inertia (:func:`~.mass_friction.work_area_summary`)."""
     normalise(rows)
@@ -110,7 +111,7 @@ def mass_friction_stats(rows: list[dict], areas: list[dict[str, Any]], control_r
     paper = present(rows, PAPER_STRATEGIES)
     out: dict[str, Any] = {
         "trials": len(rows),
-        "stopped": {n: sum(1 for r in rows if r["strategy"] == n and r["error"]) for n in strategies + CONTROLS},
+        "stopped": stopped(rows, strategies + CONTROLS),
         "work_areas": areas,
         "premise_holds": bool(areas) and all(a.get("discriminates") for a in areas),
         "controls": control_stats(rows, control_reps),

@@ -132,13 +132,15 @@ def fixed_posture(robot, pose: pin.SE3, cost=None) -> tuple[np.ndarray, np.ndarr
     return q_up, ik(robot, pose, ns, b), ns
 
 
-def postures(robot, pose: pin.SE3, speed: float = 0.05) -> Postures:
+def postures(robot, pose: pin.SE3) -> Postures:
     """:func:`fixed_posture` and the premise measured on the nominal plant (felt mass [M 8], friction force
-    [M 15] at ``speed`` m/s, the cost's potential speed)."""
+    [M 15] at the controller's cost's potential speed)."""
     from qpnso.lab.plant import Plant
+    from qpnso.model.costs import CostModel
 
-    q_up, q_fixed, ns = fixed_posture(robot, pose)
-    mass, friction = Plant(robot).felt(np.array([q_up, q_fixed]), speed)
+    cost = CostModel(robot)
+    q_up, q_fixed, ns = fixed_posture(robot, pose, cost)
+    mass, friction = Plant(robot).felt(np.array([q_up, q_fixed]), cost.potential_speed)
     return Postures(q_up, q_fixed, ns, float(mass[0]), float(mass[1]), float(friction[0]), float(friction[1]))
 
 

@@ -50,11 +50,13 @@ def load_ratio(plant: Plant, q: np.ndarray, force: np.ndarray) -> float:
     return float(np.max(np.abs(jv.T @ force) / plant.params.tau_coulomb))
 
 
+ONE_JOINT_XML = "<mujoco><worldbody><body><joint/><geom size='0.1'/></body></worldbody></mujoco>"
+
+
 def with_mujoco_default_friction(plant: Plant) -> None:
     """Sets MuJoCo's default friction-row settings (solref 0.02 s/1, solimp 0.9/0.95/...) on the plant's model."""
-    solref, solimp = np.zeros(mujoco.mjNREF), np.zeros(mujoco.mjNIMP)
-    mujoco.mj_defaultSolRefImp(solref, solimp)
-    plant.model.dof_solref[:], plant.model.dof_solimp[:] = solref, solimp
+    default = mujoco.MjModel.from_xml_string(ONE_JOINT_XML)  # (mj_defaultSolRefImp's binding differs by version)
+    plant.model.dof_solref[:], plant.model.dof_solimp[:] = default.dof_solref[0], default.dof_solimp[0]
 
 
 @pytest.mark.parametrize("config", [0, 1])

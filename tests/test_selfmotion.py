@@ -164,6 +164,9 @@ def test_the_margin_is_a_checked_setting() -> None:
     for bad in (-0.1, 1.5):
         with pytest.raises(SettingError, match="friction_compensation"):
             ControllerConfig(friction_compensation=bad)
+    for bad in (0.0, -1e-4, float("nan")):
+        with pytest.raises(SettingError, match="friction_compensation_speed"):
+            ControllerConfig(friction_compensation_speed=bad)
 
 
 # ------------------------------------------------------------------ closed loops on the MuJoCo plant
@@ -307,6 +310,23 @@ def test_friction_compensation_is_the_model_at_the_measured_selfmotion(bare) -> 
         expected = bare.friction_torque(dynamically_consistent_null(bare, q) @ dq)
         for frac, ctrl in controllers.items():
             np.testing.assert_allclose(compensation(ctrl, q, dq), frac * expected, rtol=0, atol=2e-5)
+
+
+@pytest.mark.parametrize("speed", [0.05, 1e-3])
+def test_the_compensation_speed_sets_the_laws_slope(bare, speed) -> None:
+    """With ``friction_compensation_speed`` v, τ − g(q) = τ_max·(2/π)·atan(N q̇ / v) (N by NumPy inverses): half
+    of τ_max at v; at 0.05 rad/s the robot's own model (β = 20 s/rad), so the setting's None and 0.05 agree."""
+    rng = np.random.default_rng(3)
+    cfg = ControllerConfig(strategy="damped", joint_damping=0.0, friction_compensation_speed=speed)
+    ctrl = Controller(bare, cfg)
+    tau_max = bare.friction.tau_max
+    for _ in range(5):
+        q = bare.random_q(rng, 0.4)
+        z = dynamically_consistent_null(bare, q) @ (0.01 * rng.standard_normal(7))
+        expected = tau_max * (2.0 / np.pi) * np.arctan(z / speed)
+        np.testing.assert_allclose(compensation(ctrl, q, z), expected, rtol=0, atol=2e-5 * 0.05 / speed)
+        if speed == 0.05:
+            np.testing.assert_allclose(expected, bare.friction_torque(z), atol=1e-12)
 
 
 def test_the_surgeons_own_motion_gets_no_compensation(bare) -> None:

@@ -104,6 +104,10 @@ class ControllerConfig:
     # compensated along the measured velocity's self-motion part N q̇ (never along the surgeon's motion); 0: off,
     # as for a plant without joint friction (its slope at rest, τ_max·β·2/π = 19 N·m·s/rad on the LWR4+, would
     # then drive the self-motion)
+    friction_compensation_speed: float | None = None  # rad/s: the self-motion speed at which the compensation
+    # reaches half the model's sliding torque τ_max (the law [M 23] with β = 1/speed); None: the model's own β
+    # (1/20 s/rad = 0.05 rad/s on the LWR4+).  The plant's friction is hard Coulomb: a slower transition breaks
+    # joints the self-motion turns slowly out of their stiction (control/selfmotion.py)
     posture_stiffness: float = 30.0  # N·m/rad, FOP / elbow-up
     posture_gain: float = 2.0  # 1/s, kinematic rate towards a posture
     fixed_posture: tuple[float, ...] | None = None  # rad; None: the reset posture
@@ -205,6 +209,8 @@ class ControllerConfig:
             )
         if not 0 <= self.friction_compensation <= 1:
             raise out_of_range(self, "friction_compensation", "must be in [0, 1] (0: off)")
+        if self.friction_compensation_speed is not None and not self.friction_compensation_speed > 0:
+            raise out_of_range(self, "friction_compensation_speed", "must be > 0 rad/s, or None (the model's slope)")
         if self.interval_period < 1:
             raise out_of_range(self, "interval_period", "must be >= 1 tick")
         if self.interval_steps_per_tick < 1:

@@ -76,7 +76,7 @@ _VECTORS = (
     "ddq_max",  # rad/s²: a command's change per tick at most ddq_max·dt (0: none; rows.joint_limits)
     "tau_limit",  # N·m; 0: none given
     "friction_tau_max",  # N·m: the friction model's sliding torque [M 23] (robot.friction)
-    "friction_beta",  # s/rad: and its slope parameter
+    "friction_beta",  # s/rad: the compensation's slope, 1/friction_compensation_speed (or the model's β)
 )
 
 
@@ -93,6 +93,13 @@ def tool_braking(ddq_max: np.ndarray) -> np.ndarray:
     :data:`TOOL_BRAKING_LEVER` for the linear part; 0 (no braking) when a joint has no bound."""
     slowest = BRAKING_SHARE * float(np.min(ddq_max)) if np.all(ddq_max > 0) else 0.0
     return np.array([slowest * TOOL_BRAKING_LEVER, slowest])
+
+
+def compensation_slope(robot: Robot, config) -> np.ndarray:
+    """``β`` (s/rad, per joint) of the self-motion's friction compensation, ``τ_max·(2/π)·atan(β·v)`` [M 23]:
+    ``1/config.friction_compensation_speed``, or the robot's friction model's own ``β`` when that is None."""
+    speed = config.friction_compensation_speed
+    return robot.friction.beta.copy() if speed is None else np.full(robot.nq, 1.0 / speed)
 
 
 def params_dtype(n: int, rows: int = 0, points: int = 0, capsules: int = 0, obstacles: int = 0) -> np.dtype:
@@ -166,7 +173,7 @@ def tick_params(
         ddq_max=acceleration_limits(robot, cfg),
         tau_limit=np.where(np.isfinite(limit) & (limit > 0), limit, 0.0),
         friction_tau_max=robot.friction.tau_max,
-        friction_beta=robot.friction.beta,
+        friction_beta=compensation_slope(robot, cfg),
     )
     bounds = [kind.bounds(robot) for kind in rows]
     sizes = [np.size(lo) for lo, _ in bounds]

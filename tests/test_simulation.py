@@ -165,9 +165,7 @@ def test_a_sharp_compensation_drives_a_selfmotion_nobody_commands() -> None:
     self-motion, turns its elbow (measured 4.0° against 0.01°) with velocity jumps of 0.84 rad/s in one tick
     (0.004 with the model's slope)."""
     runs = {
-        speed: simulate_scenario(
-            "A", "damped", duration_scale=0.25, settings={"friction_compensation_speed": speed}
-        )
+        speed: simulate_scenario("A", "damped", duration_scale=0.25, settings={"friction_compensation_speed": speed})
         for speed in (None, SHARP_COMPENSATION_SPEED)
     }
     jump = {k: np.abs(np.diff(r.arrays["dq_measured"], axis=0)).max() for k, r in runs.items()}

@@ -66,7 +66,8 @@ class VirtualArm:
         self.dq = np.zeros_like(self.q)
 
     def anchor(self, R: np.ndarray, p: np.ndarray) -> bool:
-        """The virtual arm moved (least joint motion, Newton steps ``q ← q + J⁺e``) so that its tool is at the
+        """The virtual arm moved (least joint motion, Newton steps ``q ← q + J⁺e``, J⁺ the pseudo-inverse: a
+        singular ``J`` takes the least-norm least-squares step) so that its tool is at the
         pose ``R`` (world ← tool), ``p`` (m): the measured one (:data:`ANCHOR_ONE_STEP`); its velocity keeps
         only its self-motion part there.  False (nothing changed) when it cannot get there within 1e-6 m/rad."""
         q = self.q
@@ -77,7 +78,7 @@ class VirtualArm:
             if size < ANCHOR_TOL:
                 break
             J = self._jacobian(q)
-            q = q + J.T @ np.linalg.solve(J @ J.T, error)
+            q = q + np.linalg.lstsq(J, error, rcond=None)[0]  # (J⁺e, defined at a singular J too)
             if size < ANCHOR_ONE_STEP:
                 error = None  # (its residual is the next tick's)
                 break

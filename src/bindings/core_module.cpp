@@ -1,0 +1,147 @@
+// qpnso._core: the Python binding of the C++ core (nanobind). Arrays are read where NumPy keeps them when they
+// are float64 and contiguous in the order asked (C order for QP matrices, CasADi's column-major for Function
+// arguments: a 1-D array is both); anything else is converted once by nanobind. The C++ work runs without the GIL.
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/optional.h>
+#include <nanobind/stl/string.h>
+#include <nanobind/stl/vector.h>
+
+#include <Python.h>
+
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "qpnso/core.hpp"
+
+namespace nb = nanobind;
+using namespace nb::literals;
+namespace core = qpnso::core;
+
+using CMat = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using CVec = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using FIn = nb::ndarray<const double, nb::f_contig, nb::device::cpu>;
+using FOut = nb::ndarray<double, nb::f_contig, nb::device::cpu>;
+using NpArray = nb::ndarray<nb::numpy, double>;
+
+namespace {
+
+// A NumPy array that owns a std::vector moved into it: no copy of the answer.
+NpArray to_numpy(std::vector<double>&& v) {
+  auto* owned = new std::vector<double>(std::move(v));
+  nb::capsule owner(owned, [](void* p) noexcept { delete static_cast<std::vector<double>*>(p); });
+  const size_t shape[1] = {owned->size()};
+  return NpArray(owned->data(), 1, shape, owner);
+}
+
+NpArray new_fortran(long rows, long cols, double** data) {
+  auto* owned = new std::vector<double>(static_cast<size_t>(rows * cols), 0.0);
+  *data = owned->data();
+  nb::capsule owner(owned, [](void* p) noexcept { delete static_cast<std::vector<double>*>(p); });
+  const size_t shape[2] = {static_cast<size_t>(rows), static_cast<size_t>(cols)};
+  const int64_t strides[2] = {1, rows};
+  return NpArray(owned->data(), 2, shape, owner, strides);
+}
+
+void check(bool ok, const std::string& what) {
+  if (!ok) throw nb::value_error(what.c_str());
+}
+
+nb::dict solve_dense_qp(CMat H, CVec g, std::optional<CMat> A, std::optional<CVec> b, std::optional<CMat> C,
+                        std::optional<CVec> l, std::optional<CVec> u, double eps_abs) {
+  const long n = static_cast<long>(H.shape(0));
+  check(H.shape(1) == static_cast<size_t>(n) && g.shape(0) == static_cast<size_t>(n), "H must be n x n, g of n");
+  const long n_eq = A ? static_cast<long>(A->shape(0)) : 0;
+  const long n_in = C ? static_cast<long>(C->shape(0)) : 0;
+  check(!A || (A->shape(1) == static_cast<size_t>(n) && b && b->shape(0) == static_cast<size_t>(n_eq)),
+        "A must be n_eq x n with b of n_eq");
+  check(!C || (C->shape(1) == static_cast<size_t>(n) && l && u && l->shape(0) == static_cast<size_t>(n_in) &&
+               u->shape(0) == static_cast<size_t>(n_in)),
+        "C must be n_in x n with l and u of n_in");
+  core::QpResult r;
+  {
+    nb::gil_scoped_release released;
+    r = core::solve_dense_qp(n, n_eq, n_in, H.data(), g.data(), A ? A->data() : nullptr, b ? b->data() : nullptr,
+                             C ? C->data() : nullptr, l ? l->data() : nullptr, u ? u->data() : nullptr, eps_abs);
+  }
+  nb::dict d;
+  d["x"] = to_numpy(std::move(r.x));
+  d["y"] = to_numpy(std::move(r.y));
+  d["z"] = to_numpy(std::move(r.z));
+  d["status"] = r.status;
+  d["iterations"] = r.iterations;
+  d["primal_residual"] = r.primal_residual;
+  d["dual_residual"] = r.dual_residual;
+  return d;
+}
+
+std::vector<const double*> arguments(const core::CasadiFunction& f, const std::vector<FIn>& args) {
+  check(static_cast<long>(args.size()) == f.n_in(),
+        f.name() + " takes " + std::to_string(f.n_in()) + " arguments, got " + std::to_string(args.size()));
+  std::vector<const double*> in(args.size());
+  for (size_t i = 0; i < args.size(); ++i) {
+    check(static_cast<long>(args[i].size()) == f.rows_in(i) * f.cols_in(i),
+          f.name() + ": argument " + std::to_string(i) + " must have " + std::to_string(f.rows_in(i)) + " x " +
+              std::to_string(f.cols_in(i)) + " elements");
+    in[i] = args[i].data();
+  }
+  return in;
+}
+
+}  // namespace
+
+NB_MODULE(_core, m) {
+  m.doc() = "qpnso's C++ core (build-system spike of issue 33): a dense QP by ProxSuite's C++ API, CasADi "
+            "Functions evaluated without Python.";
+  m.def("build_info", &core::build_info);
+  m.def("solve_dense_qp", &solve_dense_qp, "H"_a, "g"_a, "A"_a = nb::none(), "b"_a = nb::none(),
+        "C"_a = nb::none(), "l"_a = nb::none(), "u"_a = nb::none(), "eps_abs"_a = 1e-9,
+        "min 1/2 x'Hx + g'x s.t. A x = b, l <= C x <= u (ProxSuite dense ProxQP, C++ API, without the GIL).");
+  // Whether the thread holds the GIL inside a call made the way the core's bindings make theirs.
+  m.def("_gil_held_in_core_call", []() {
+    nb::gil_scoped_release released;
+    return PyGILState_Check() != 0;
+  });
+
+  nb::class_<core::CasadiFunction>(m, "CasadiFunction")
+      .def_static("load_compiled", &core::CasadiFunction::load_compiled, "library"_a, "name"_a,
+                  "A Function from the shared library compiled from casadi.Function.generate's C (dlopen).")
+      .def_static("load_runtime", &core::CasadiFunction::load_runtime, "libcasadi"_a, "serialized_file"_a,
+                  "name"_a, "A Function saved by Function.save, evaluated by libcasadi's C API (dlopen).")
+      .def_prop_ro("name", &core::CasadiFunction::name)
+      .def_prop_ro("runtime", &core::CasadiFunction::runtime)
+      .def_prop_ro("n_in", &core::CasadiFunction::n_in)
+      .def_prop_ro("n_out", &core::CasadiFunction::n_out)
+      .def(
+          "__call__",
+          [](core::CasadiFunction& f, const std::vector<FIn>& args) {
+            std::vector<const double*> in = arguments(f, args);
+            std::vector<double*> out(f.n_out());
+            nb::list results;
+            for (long i = 0; i < f.n_out(); ++i) results.append(new_fortran(f.rows_out(i), f.cols_out(i), &out[i]));
+            {
+              nb::gil_scoped_release released;
+              f.eval(in.data(), out.data());
+            }
+            return results;
+          },
+          "args"_a, "The outputs, as new column-major arrays of the outputs' shapes.")
+      .def(
+          "eval_into",
+          [](core::CasadiFunction& f, const std::vector<FIn>& args, std::vector<FOut> outputs) {
+            std::vector<const double*> in = arguments(f, args);
+            check(static_cast<long>(outputs.size()) == f.n_out(), f.name() + ": wrong number of outputs");
+            std::vector<double*> out(outputs.size());
+            for (size_t i = 0; i < outputs.size(); ++i) {
+              check(static_cast<long>(outputs[i].size()) == f.rows_out(i) * f.cols_out(i),
+                    f.name() + ": output " + std::to_string(i) + " has the wrong size");
+              out[i] = outputs[i].data();
+            }
+            nb::gil_scoped_release released;
+            f.eval(in.data(), out.data());
+          },
+          "args"_a, "outputs"_a.noconvert(),
+          "Writes the outputs into the given float64 column-major arrays (no allocation, no copy).");
+}

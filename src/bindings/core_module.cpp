@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "qpnso/core.hpp"
+#include "registry.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -92,7 +93,16 @@ std::vector<const double*> arguments(const core::CasadiFunction& f, const std::v
 
 }  // namespace
 
+std::map<std::string, qpnso::bindings::Register>& qpnso::bindings::areas() {
+  static std::map<std::string, Register> registered;
+  return registered;
+}
+
 NB_MODULE(_core, m) {
+  for (const auto& [name, define] : qpnso::bindings::areas()) {
+    nb::module_ sub = m.def_submodule(name.c_str());
+    define(sub);
+  }
   m.doc() = "qpnso's C++ core (build-system spike of issue 33): a dense QP by ProxSuite's C++ API, CasADi "
             "Functions evaluated without Python.";
   m.def("build_info", &core::build_info);

@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 
 import qpnso
+import qpnso._core
 from qpnso import compiled_cache
 
 PACKAGE = Path(qpnso.__file__).resolve().parent
@@ -46,15 +47,33 @@ def _python(code: str, env: dict[str, str], cwd: Path, timeout: float = 300) -> 
     return done
 
 
+NO_EDITABLE_REDIRECT = (
+    "import sys; sys.meta_path[:] = [f for f in sys.meta_path if type(f).__name__ != 'ScikitBuildRedirectingFinder']"
+)
+"""A subprocess's first line that imports qpnso from ``PYTHONPATH``: an editable install's finder (scikit-build-core)
+otherwise sends ``import qpnso`` to the checkout whatever the path says."""
+
+
+def copy_package(dst: Path) -> None:
+    """The installed package's files at ``dst``, the compiled core with them (an editable install keeps
+    ``qpnso/_core*.so`` and ``qpnso/lib/`` in site-packages, beside no Python source)."""
+    shutil.copytree(PACKAGE, dst, ignore=shutil.ignore_patterns("__pycache__"))
+    built = Path(qpnso._core.__file__).resolve().parent
+    if built != PACKAGE:
+        shutil.copy2(qpnso._core.__file__, dst)
+        shutil.copytree(built / "lib", dst / "lib", dirs_exist_ok=True)
+
+
 def test_kernel_recompiles_when_a_kernel_it_calls_in_another_module_changes(tmp_path) -> None:
     """``tick.pose_error`` calls ``linalg.matmul``: Numba alone keeps pose_error's cached code after
     linalg.py changes (it checks tick.py only); the keyed cache folder does not."""
     src = tmp_path / "src"
-    shutil.copytree(PACKAGE, src / "qpnso", ignore=shutil.ignore_patterns("__pycache__"))
+    copy_package(src / "qpnso")
     linalg = src / "qpnso" / "linalg.py"
     original = linalg.read_bytes()
     env = _env(tmp_path / "cache", pythonpath=src)
     code = f"""
+        {NO_EDITABLE_REDIRECT}
         import numpy as np
         import qpnso.control.tick as tick
         assert tick.__file__.startswith({str(src)!r}), tick.__file__

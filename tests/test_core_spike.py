@@ -193,3 +193,12 @@ def test_cpp_example_builds_against_the_installed_package_and_answers_as_python(
     want = _core.solve_dense_qp(H, g, A, np.array([1.0]), np.eye(3), -np.ones(3) * 0.4, np.ones(3))["x"]
     assert np.allclose(x, want, rtol=0, atol=1e-12)
     assert metadata.version("qpnso") in out
+
+
+def test_the_committed_stub_is_the_one_nanobind_writes(tmp_path):
+    """qpnso/_core.pyi (what mypy reads) is nanobind.stubgen's output for the built module, unchanged: regenerate it
+    with ``python -m nanobind.stubgen -m qpnso._core -o qpnso/_core.pyi`` when the binding changes."""
+    stub = tmp_path / "_core.pyi"
+    subprocess.run([sys.executable, "-m", "nanobind.stubgen", "-q", "-m", "qpnso._core", "-o", str(stub)], check=True)
+    committed = SOURCE_TREE / "qpnso" / "_core.pyi"
+    assert stub.read_text() == committed.read_text(), "qpnso/_core.pyi is stale: regenerate it (docstring above)"

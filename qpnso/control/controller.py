@@ -322,6 +322,20 @@ class Controller:
         if self.capsules is not None:
             still_obstacles(self.records.params["geo"])
 
+    def info(self) -> dict[str, str]:
+        """What runs this controller's ticks, as plain data: the robot, the strategy, the C++ core's build
+        (``qpnso._core.build_info()``) and what evaluates the tick's CasADi state function now, "compiled C"
+        (the model's library, compiled once per machine in the background) or "casadi runtime" (CasADi's own,
+        until then or without a C compiler; :mod:`qpnso.model.codegen`)."""
+        from qpnso import _core
+
+        return {
+            "robot": self.robot.name,
+            "strategy": self.config.strategy,
+            "core": _core.build_info(),
+            "state_function": self.evaluate.runtime,
+        }
+
     @property
     def ddq_max(self) -> np.ndarray:
         """The joint acceleration bounds (rad/s², a copy): every command changes each joint's speed by at most

@@ -162,6 +162,11 @@ class StateEvaluator:
         """Block until compiled code is used (benchmarks call this)."""
         return self._fn.wait(timeout)
 
+    @property
+    def runtime(self) -> str:
+        """What evaluates the state function now: "compiled C" or "casadi runtime" (:mod:`qpnso.model.codegen`)."""
+        return self._fn.runtime
+
     def __call__(
         self,
         q: np.ndarray,

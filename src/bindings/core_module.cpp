@@ -25,6 +25,7 @@ using CMat = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cp
 using CVec = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using FIn = nb::ndarray<const double, nb::f_contig, nb::device::cpu>;
 using FOut = nb::ndarray<double, nb::f_contig, nb::device::cpu>;
+using FArg = nb::ndarray<double, nb::f_contig, nb::device::cpu>;  // a bound input: the caller writes it in place
 using NpArray = nb::ndarray<nb::numpy, double>;
 
 namespace {
@@ -91,6 +92,37 @@ std::vector<const double*> arguments(const core::CasadiFunction& f, const std::v
   return in;
 }
 
+// A CasadiFunction's evaluation bound once to its argument and output arrays: a call converts nothing.
+class Bound {
+ public:
+  Bound(core::CasadiFunction& f, std::vector<FArg> args, std::vector<FOut> outputs)
+      : f_(f), args_(std::move(args)), outputs_(std::move(outputs)) {
+    check(static_cast<long>(args_.size()) == f_.n_in(), f_.name() + ": wrong number of arguments");
+    for (size_t i = 0; i < args_.size(); ++i) {
+      check(static_cast<long>(args_[i].size()) == f_.rows_in(i) * f_.cols_in(i),
+            f_.name() + ": argument " + std::to_string(i) + " has the wrong size");
+      in_.push_back(args_[i].data());
+    }
+    check(static_cast<long>(outputs_.size()) == f_.n_out(), f_.name() + ": wrong number of outputs");
+    for (size_t i = 0; i < outputs_.size(); ++i) {
+      check(static_cast<long>(outputs_[i].size()) == f_.rows_out(i) * f_.cols_out(i),
+            f_.name() + ": output " + std::to_string(i) + " has the wrong size");
+      out_.push_back(outputs_[i].data());
+    }
+  }
+  void call() {
+    nb::gil_scoped_release released;
+    f_.eval(in_.data(), out_.data());
+  }
+
+ private:
+  core::CasadiFunction& f_;
+  std::vector<FArg> args_;
+  std::vector<FOut> outputs_;
+  std::vector<const double*> in_;
+  std::vector<double*> out_;
+};
+
 }  // namespace
 
 std::map<std::string, qpnso::bindings::Register>& qpnso::bindings::areas() {
@@ -153,5 +185,15 @@ NB_MODULE(_core, m) {
             f.eval(in.data(), out.data());
           },
           "args"_a, "outputs"_a.noconvert(),
-          "Writes the outputs into the given float64 column-major arrays (no allocation, no copy).");
+          "Writes the outputs into the given float64 column-major arrays (no allocation, no copy).")
+      .def(
+          "bind",
+          [](core::CasadiFunction& f, std::vector<FArg> args, std::vector<FOut> outputs) {
+            return Bound(f, std::move(args), std::move(outputs));
+          },
+          "args"_a.noconvert(), "outputs"_a.noconvert(), nb::keep_alive<0, 1>(),
+          "An evaluation bound to these float64 column-major arrays, read and written where they lie on each call "
+          "(a tick's: no argument to convert). The Bound keeps the arrays and the function alive.");
+
+  nb::class_<Bound>(m, "Bound").def("__call__", &Bound::call, "Evaluates from the bound inputs into the bound outputs.");
 }

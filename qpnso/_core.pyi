@@ -1,5 +1,5 @@
 """
-qpnso's C++ core (build-system spike of issue 33): a dense QP by ProxSuite's C++ API, CasADi Functions evaluated without Python.
+qpnso's C++ core: CasADi Functions evaluated without Python (the tick's port: src/core/PORTING.md).
 """
 
 from collections.abc import Sequence
@@ -10,11 +10,6 @@ from numpy.typing import NDArray
 
 
 def build_info() -> str: ...
-
-def solve_dense_qp(H: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], g: Annotated[NDArray[numpy.float64], dict(shape=(None,), order='C', device='cpu', writable=False)], A: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)] | None = None, b: Annotated[NDArray[numpy.float64], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None, C: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)] | None = None, l: Annotated[NDArray[numpy.float64], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None, u: Annotated[NDArray[numpy.float64], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None, eps_abs: float = 1e-09) -> dict:
-    """
-    min 1/2 x'Hx + g'x s.t. A x = b, l <= C x <= u (ProxSuite dense ProxQP, C++ API, without the GIL).
-    """
 
 class CasadiFunction:
     @staticmethod

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import casadi as ca
@@ -161,6 +162,15 @@ class StateEvaluator:
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Block until compiled code is used (benchmarks call this)."""
         return self._fn.wait(timeout)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the state function (CasADi's serialisation, ``Function.save``) to ``path``, for a C++ program on
+        qpnso's C++ API (``qpnso::core::CasadiFunction::load_runtime``: examples/cpp/state_loop.cpp).  Its one
+        input is ``(q, dq, twist, twist_prev)`` (rad, rad/s, m/s and rad/s), its one output the record of
+        :func:`state_dtype`, field for field.  Returns the path."""
+        path = Path(path)
+        self._fn.function.save(str(path))
+        return path
 
     @property
     def runtime(self) -> str:

@@ -3,13 +3,11 @@
 // arguments: a 1-D array is both); anything else is converted once by nanobind. The C++ work runs without the GIL.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
-#include <nanobind/stl/optional.h>
 #include <nanobind/stl/string.h>
 #include <nanobind/stl/vector.h>
 
 #include <Python.h>
 
-#include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -21,22 +19,12 @@ namespace nb = nanobind;
 using namespace nb::literals;
 namespace core = qpnso::core;
 
-using CMat = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
-using CVec = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using FIn = nb::ndarray<const double, nb::f_contig, nb::device::cpu>;
 using FOut = nb::ndarray<double, nb::f_contig, nb::device::cpu>;
 using FArg = nb::ndarray<double, nb::f_contig, nb::device::cpu>;  // a bound input: the caller writes it in place
 using NpArray = nb::ndarray<nb::numpy, double>;
 
 namespace {
-
-// A NumPy array that owns a std::vector moved into it: no copy of the answer.
-NpArray to_numpy(std::vector<double>&& v) {
-  auto* owned = new std::vector<double>(std::move(v));
-  nb::capsule owner(owned, [](void* p) noexcept { delete static_cast<std::vector<double>*>(p); });
-  const size_t shape[1] = {owned->size()};
-  return NpArray(owned->data(), 1, shape, owner);
-}
 
 NpArray new_fortran(long rows, long cols, double** data) {
   auto* owned = new std::vector<double>(static_cast<size_t>(rows * cols), 0.0);
@@ -49,34 +37,6 @@ NpArray new_fortran(long rows, long cols, double** data) {
 
 void check(bool ok, const std::string& what) {
   if (!ok) throw nb::value_error(what.c_str());
-}
-
-nb::dict solve_dense_qp(CMat H, CVec g, std::optional<CMat> A, std::optional<CVec> b, std::optional<CMat> C,
-                        std::optional<CVec> l, std::optional<CVec> u, double eps_abs) {
-  const long n = static_cast<long>(H.shape(0));
-  check(H.shape(1) == static_cast<size_t>(n) && g.shape(0) == static_cast<size_t>(n), "H must be n x n, g of n");
-  const long n_eq = A ? static_cast<long>(A->shape(0)) : 0;
-  const long n_in = C ? static_cast<long>(C->shape(0)) : 0;
-  check(!A || (A->shape(1) == static_cast<size_t>(n) && b && b->shape(0) == static_cast<size_t>(n_eq)),
-        "A must be n_eq x n with b of n_eq");
-  check(!C || (C->shape(1) == static_cast<size_t>(n) && l && u && l->shape(0) == static_cast<size_t>(n_in) &&
-               u->shape(0) == static_cast<size_t>(n_in)),
-        "C must be n_in x n with l and u of n_in");
-  core::QpResult r;
-  {
-    nb::gil_scoped_release released;
-    r = core::solve_dense_qp(n, n_eq, n_in, H.data(), g.data(), A ? A->data() : nullptr, b ? b->data() : nullptr,
-                             C ? C->data() : nullptr, l ? l->data() : nullptr, u ? u->data() : nullptr, eps_abs);
-  }
-  nb::dict d;
-  d["x"] = to_numpy(std::move(r.x));
-  d["y"] = to_numpy(std::move(r.y));
-  d["z"] = to_numpy(std::move(r.z));
-  d["status"] = r.status;
-  d["iterations"] = r.iterations;
-  d["primal_residual"] = r.primal_residual;
-  d["dual_residual"] = r.dual_residual;
-  return d;
 }
 
 std::vector<const double*> arguments(const core::CasadiFunction& f, const std::vector<FIn>& args) {
@@ -135,12 +95,8 @@ NB_MODULE(_core, m) {
     nb::module_ sub = m.def_submodule(name.c_str());
     define(sub);
   }
-  m.doc() = "qpnso's C++ core (build-system spike of issue 33): a dense QP by ProxSuite's C++ API, CasADi "
-            "Functions evaluated without Python.";
+  m.doc() = "qpnso's C++ core: CasADi Functions evaluated without Python (the tick's port: src/core/PORTING.md).";
   m.def("build_info", &core::build_info);
-  m.def("solve_dense_qp", &solve_dense_qp, "H"_a, "g"_a, "A"_a = nb::none(), "b"_a = nb::none(),
-        "C"_a = nb::none(), "l"_a = nb::none(), "u"_a = nb::none(), "eps_abs"_a = 1e-9,
-        "min 1/2 x'Hx + g'x s.t. A x = b, l <= C x <= u (ProxSuite dense ProxQP, C++ API, without the GIL).");
   // Whether the thread holds the GIL inside a call made the way the core's bindings make theirs.
   m.def("_gil_held_in_core_call", []() {
     nb::gil_scoped_release released;

@@ -19,22 +19,8 @@
 
 namespace qpnso::core {
 
-/// The versions compiled into the library: qpnso's, ProxSuite's headers', Eigen's.
+/// The versions compiled into the library: qpnso's, ProxSuite's headers', Eigen's, and Eigen's SIMD sets.
 QPNSO_CORE_API std::string build_info();
-
-/// Answer of solve_dense_qp.
-struct QpResult {
-  std::vector<double> x, y, z;  ///< primal, equality and inequality multipliers
-  int status = -1;              ///< proxsuite::proxqp::QPSolverOutput, 0 = solved
-  long iterations = 0;
-  double primal_residual = 0.0, dual_residual = 0.0;
-};
-
-/// min 1/2 x'Hx + g'x  s.t.  A x = b,  l <= C x <= u, by ProxSuite's dense ProxQP (C++ API).
-/// H: n x n, A: n_eq x n, C: n_in x n, all row-major; A, b may be null when n_eq == 0, and C, l, u when n_in == 0.
-QPNSO_CORE_API QpResult solve_dense_qp(long n, long n_eq, long n_in, const double* H, const double* g,
-                                       const double* A, const double* b, const double* C, const double* l,
-                                       const double* u, double eps_abs = 1e-9);
 
 /// A CasADi Function evaluated without Python, through CasADi's C calling convention, on either
 ///  * a shared library compiled from the C that casadi.Function.generate wrote (dlopen; no libcasadi), or

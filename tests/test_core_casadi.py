@@ -1,11 +1,11 @@
-"""Issue 33's build spike: the compiled core qpnso._core (C++17, nanobind, scikit-build-core) is built by
-``pip install .`` and ``pip install -e .`` and answers as the Python libraries do, to round-off:
+"""The compiled core qpnso._core (C++17, nanobind, scikit-build-core; src/core) is built by ``pip install .`` and
+``pip install -e .`` and evaluates CasADi functions as casadi does, to round-off, both ways the core uses:
 
-* a dense QP by ProxSuite's C++ API against the Python proxsuite's dense solver;
-* a CasADi Function evaluated without Python, both ways the core will use: the shared library compiled from
-  the C that ``Function.generate`` writes, and CasADi's own runtime (libcasadi of the casadi wheel, through its
-  C API, on a Function saved with ``Function.save``), against casadi's own evaluation in Python;
-* the C++ API: examples/cpp/ built with CMake against the installed package (find_package(qpnso)) and run.
+* the shared library compiled from the C that ``Function.generate`` writes (dlopen), and
+* CasADi's own runtime (libcasadi of the casadi wheel, through its C API, on a Function saved with
+  ``Function.save``), against casadi's own evaluation in Python;
+* without the GIL; and from C++ alone: examples/cpp/state_loop built with CMake against the installed package
+  (``find_package(qpnso)``) evaluates the control tick's state function as Python does.
 """
 
 from __future__ import annotations
@@ -16,62 +16,15 @@ import shutil
 import subprocess
 import sys
 import threading
-from importlib import metadata
 
 import casadi as ca
 import numpy as np
-import proxsuite
 import pytest
 from conftest import SOURCE_TREE
 
 from qpnso import _core
 
 EXAMPLE = SOURCE_TREE / "examples" / "cpp"
-
-
-def random_qp(rng: np.random.Generator, n: int = 7, n_eq: int = 2, n_in: int = 5):
-    M = rng.standard_normal((n, n))
-    H = M @ M.T + 0.1 * np.eye(n)
-    g = rng.standard_normal(n)
-    A = rng.standard_normal((n_eq, n))
-    b = rng.standard_normal(n_eq)
-    C = rng.standard_normal((n_in, n))
-    l = -0.2 * np.ones(n_in)  # tight enough that some rows are active
-    u = 0.3 * np.ones(n_in)
-    return H, g, A, b, C, l, u
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_dense_qp_matches_python_proxsuite(seed):
-    H, g, A, b, C, l, u = random_qp(np.random.default_rng(seed))
-    got = _core.solve_dense_qp(H, g, A, b, C, l, u, eps_abs=1e-10)
-    qp = proxsuite.proxqp.dense.QP(H.shape[0], A.shape[0], C.shape[0])
-    qp.settings.eps_abs = 1e-10
-    qp.settings.eps_rel = 0.0
-    qp.init(H, g, A, b, C, l, u)
-    qp.solve()
-    assert got["status"] == 0  # PROXQP_SOLVED
-    assert np.allclose(got["x"], qp.results.x, rtol=0, atol=1e-8)
-    assert np.allclose(got["z"], qp.results.z, rtol=0, atol=1e-7)
-    # and it is the optimum: stationarity and feasibility, judged in NumPy
-    x, y, z = got["x"], got["y"], got["z"]
-    assert np.linalg.norm(H @ x + g + A.T @ y + C.T @ z, np.inf) < 1e-8
-    assert np.linalg.norm(A @ x - b, np.inf) < 1e-9
-    assert np.all(C @ x >= l - 1e-9) and np.all(C @ x <= u + 1e-9)
-
-
-def test_dense_qp_without_constraints_and_from_other_layouts():
-    H, g, *_ = random_qp(np.random.default_rng(3))
-    x = _core.solve_dense_qp(H, g, eps_abs=1e-12)["x"]  # ProxQP's stop is on residuals: |dx| <= eps / min eig H
-    assert np.allclose(x, np.linalg.solve(H, -g), rtol=0, atol=1e-9)
-    # Fortran-ordered and float32 inputs are converted once by the binding, not refused
-    assert np.allclose(
-        _core.solve_dense_qp(np.asfortranarray(H), g.astype(np.float32))["x"],
-        np.linalg.solve(H, -g.astype(np.float32).astype(float)),
-        atol=1e-6,
-    )
-    with pytest.raises(ValueError):
-        _core.solve_dense_qp(H, g[:-1])
 
 
 def casadi_test_function() -> ca.Function:
@@ -139,20 +92,31 @@ def test_casadi_runtime_from_the_wheel(tmp_path):
         core_f.eval_into(args, [outs[0], outs[1], np.zeros((3, 3))])
 
 
-def test_core_calls_release_the_gil():
+def test_core_calls_release_the_gil(tmp_path):
     assert _core._gil_held_in_core_call() is False
-    # and two threads solve at once without one waiting on the other's GIL
-    H, g, A, b, C, l, u = random_qp(np.random.default_rng(0))
+    # and four threads evaluate at once, each its own bound evaluation, without one waiting on another's GIL
+    f = casadi_test_function()
+    f.save(str(tmp_path / "spike_f.casadi"))
+    core_f = _core.CasadiFunction.load_runtime(libcasadi(), str(tmp_path / "spike_f.casadi"), "spike_f")
+    args = [np.asfortranarray(a, dtype=float) for a in casadi_inputs()]
+    want = expected_outputs(f, args)
     answers = []
-    threads = [
-        threading.Thread(target=lambda: answers.append(_core.solve_dense_qp(H, g, A, b, C, l, u)["x"]))
-        for _ in range(4)
-    ]
+
+    def evaluate() -> None:
+        outs = [np.zeros(w.shape, order="F") for w in want]
+        bound = core_f.bind([a.copy(order="F") for a in args], outs)
+        for _ in range(200):
+            bound()
+        answers.append(outs)
+
+    threads = [threading.Thread(target=evaluate) for _ in range(4)]
     for t in threads:
         t.start()
     for t in threads:
         t.join()
-    assert len(answers) == 4 and all(np.array_equal(a, answers[0]) for a in answers)
+    assert len(answers) == 4
+    for outs in answers:
+        assert_same(outs, want)
 
 
 PRINT_CMAKE_PREFIX = (
@@ -169,30 +133,31 @@ def cmake_prefix() -> str:
 
 
 @pytest.mark.skipif(shutil.which("cmake") is None or shutil.which("c++") is None, reason="no cmake or C++ compiler")
-def test_cpp_example_builds_against_the_installed_package_and_answers_as_python(tmp_path):
+def test_cpp_example_evaluates_the_ticks_state_as_python_does(tmp_path):
+    """examples/cpp/state_loop, built against the installed package, evaluates the LWR4+'s tick state function
+    (exported by ``StateEvaluator.save``) over 50 ticks of its joint sweep; its last state equals the Python
+    controller's evaluation at the same input to 1e-12 (the same CasADi runtime: round-off of the printed
+    digits only)."""
+    from qpnso import Controller, ControllerConfig, load_robot
+
     build = tmp_path / "build"
-    subprocess.run(
-        [
-            "cmake",
-            "-S",
-            str(EXAMPLE),
-            "-B",
-            str(build),
-            f"-DCMAKE_PREFIX_PATH={cmake_prefix()}",
-            "-DCMAKE_BUILD_TYPE=Release",
-        ],
-        check=True,
-        capture_output=True,
-    )
+    configure = ["cmake", "-S", str(EXAMPLE), "-B", str(build), f"-DCMAKE_PREFIX_PATH={cmake_prefix()}"]
+    subprocess.run([*configure, "-DCMAKE_BUILD_TYPE=Release"], check=True, capture_output=True)
     subprocess.run(["cmake", "--build", str(build), "-j2"], check=True, capture_output=True)
-    out = subprocess.run([str(build / "core_spike")], check=True, capture_output=True, text=True).stdout
-    x = np.array([float(v) for v in out.split("x =")[1].split()[:3]])
-    H = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
-    g = np.array([1.0, -2.0, 0.5])
-    A = np.array([[1.0, 1.0, 1.0]])
-    want = _core.solve_dense_qp(H, g, A, np.array([1.0]), np.eye(3), -np.ones(3) * 0.4, np.ones(3))["x"]
-    assert np.allclose(x, want, rtol=0, atol=1e-12)
-    assert metadata.version("qpnso") in out
+    robot = load_robot("lwr4p")
+    evaluator = Controller(robot, ControllerConfig(strategy="damped")).evaluate
+    function = evaluator.save(tmp_path / "state.casadi")
+    name = evaluator._fn.function.name()
+    ticks = 50
+    run = [str(build / "state_loop"), libcasadi(), str(function), name, str(ticks)]
+    out = subprocess.run(run, check=True, capture_output=True, text=True).stdout.splitlines()
+    assert out[0].startswith(f"{name}: casadi runtime, {ticks} ticks: median ")
+    got = np.array([float(v) for v in out[1:]])
+    q = 0.3 * np.sin(1e-3 * (ticks - 1) + np.arange(robot.nq))
+    zero7, zero6 = np.zeros(robot.nq), np.zeros(6)
+    want = evaluator.record(q, zero7, zero6, zero6).view(np.float64).ravel().copy()
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
 
 
 def test_the_committed_stub_is_the_one_nanobind_writes(tmp_path):

@@ -39,27 +39,27 @@ SOURCE_TREE = Path(__file__).resolve().parent.parent
 TOLERANCE = {"dq": (1e-9, 1e-9), "q_des": (2e-11, 0.0), "tau": (1e-9, 1e-9)}
 """(atol, rtol) of each command entry: |replayed − recorded| ≤ atol + rtol·|recorded| (rad/s, rad, N·m).
 
-Measured (this machine, each recording replayed whole, the main job's 36 141 ticks too, in six fresh processes:
-four with ``QPNSO_COMPILE=off``, two with ``sync``):
+Measured (this machine, each recording replayed whole, the main job's 36 141 ticks too, in six fresh processes: four
+with ``QPNSO_COMPILE=off``, two with ``sync``):
 
-* the same code replayed: the main job and five of the seven fuzz episodes bit for bit, in every process.  Two
-  episodes differ in some processes and not in others (one of two answers per process): episode 24 (iiwa14, 4 ms,
-  elbow-up) from the first tick after a joint overshot its limit (``Q_OUT_OF_LIMITS|QP_FALLBACK``), by 7.6e-17
-  rad/s growing to 1.2e-14 rad/s on ``dq`` (relative 2.5e-12), 4.4e-16 rad on ``q_des``; episode 48 (iiwa14, 1 ms,
-  gradient-impedance) from its tick 267 by up to 6.7e-16 rad/s, 3.5e-18 rad.  ``tau`` never differed.  Round-off
-  that depends on the process, not on the code (most likely where its allocator put an array: a vectorised
-  reduction's summation order follows the data's alignment).  Two *recordings* (closed loops, the noise fed back into ``q``) of
-  episode 24 differed by 4.8e-12 rad/s on ``dq`` and 3.1e-11 N·m on ``tau``: why the check replays inputs;
+* the same code replayed: the main job and five of the seven fuzz episodes bit for bit, in every process.  Two episodes
+  differ in some processes and not in others (one of two answers per process): episode 24 (iiwa14, 4 ms, elbow-up) from
+  the first tick after a joint overshot its limit (``Q_OUT_OF_LIMITS|QP_FALLBACK``), by 7.6e-17 rad/s growing to 1.2e-14
+  rad/s on ``dq`` (relative 2.5e-12), 4.4e-16 rad on ``q_des``; episode 48 (iiwa14, 1 ms, gradient-impedance) from its
+  tick 267 by up to 6.7e-16 rad/s, 3.5e-18 rad.  ``tau`` never differed.  Round-off that depends on the process, not on
+  the code (most likely where its allocator put an array: a vectorised reduction's summation order follows the data's
+  alignment).  Two *recordings* (closed loops, the noise fed back into ``q``) of episode 24 differed by 4.8e-12 rad/s on
+  ``dq`` and 3.1e-11 N·m on ``tau``: why the check replays inputs;
 * the state function by CasADi's runtime (``QPNSO_COMPILE=off``, the recording's) against compiled C
-  (``QPNSO_COMPILE=sync``): bit for bit (the same operations in the same order, no FMA on the generic x86-64
-  target), apart from the same two episodes' noise.
+  (``QPNSO_COMPILE=sync``): bit for bit (the same operations in the same order, no FMA on the generic x86-64 target),
+  apart from the same two episodes' noise.
 
-Chosen: ``dq`` 1e-9 rad/s absolute and 1e-9 relative, ~1e5 times the largest difference measured: room for the
-C++ core's round-off (operations reordered by Eigen and the compiler: ~1e-15 per tick) growing through the
-controller's memory (x130 over 290 ticks in episode 24) and through the QPs solved to ProxSuite's 1e-11
-tolerance, while a wrong gain, row or sign (1e-6 and more) fails.  ``q_des`` = q + dt·dq: 2e-11 rad absolute, dq's
-tolerance (≤ 3e-9 rad/s at |dq| ≤ 2 rad/s) times dt ≤ 4 ms plus the round-off of q.  ``tau``: 1e-9 N·m absolute and 1e-9 relative (0 measured;
-torques up to ~100 N·m, their round-off ~1e-14).  Status bits must be equal."""
+Chosen: ``dq`` 1e-9 rad/s absolute and 1e-9 relative, ~1e5 times the largest difference measured: room for the C++
+core's round-off (operations reordered by Eigen and the compiler: ~1e-15 per tick) growing through the controller's
+memory (7.6e-17 to 1.2e-14 in 290 ticks in episode 24) and through the QPs solved to ProxSuite's 1e-11 tolerance,
+while a wrong gain, row or sign (1e-6 and more) fails.  ``q_des`` = q + dt·dq: 2e-11 rad absolute, dq's tolerance
+(≤ 3e-9 rad/s at |dq| ≤ 2 rad/s) times dt ≤ 4 ms plus the round-off of q.  ``tau``: 1e-9 N·m absolute and 1e-9
+relative (0 measured; torques up to ~100 N·m, their round-off ~1e-14).  Status bits must be equal."""
 
 MAIN_REPLAYED = 2000
 """The main job's ticks replayed by default (from its reset, in order)."""

@@ -149,7 +149,7 @@ class RecordingController:
             and (tool_twist is None or tw is not None)
             and (tool_pose is None or isinstance(tool_pose, pin.SE3))
         )
-        pose = None if tool_pose is None else (tool_pose.rotation.copy(), tool_pose.translation.copy())  # type: ignore[attr-defined]
+        pose = (tool_pose.rotation.copy(), tool_pose.translation.copy()) if isinstance(tool_pose, pin.SE3) else None
         before = self._memory() if not stored else None
         try:
             cmd = step(q, dq, tool_twist, tool_pose)
@@ -292,7 +292,11 @@ def record_main() -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         "inputs": "q of every tick (q_planes: decode_q of record_commands.py); tool_twist and tool_pose "
         "recomputed from the trajectory (Trajectory.samples at t0 + k*dt, as solve_trajectory does), kept at the "
         "kept ticks; dq None",
-        "summary": {k: v for k, v in result.summary.items() if isinstance(v, (int, float, str))},
+        "summary": {  # (the run's own summary, its timings left out: they are the machine's)
+            k: v
+            for k, v in result.summary.items()
+            if isinstance(v, (int, float, str)) and "time" not in k and k != "slow_ticks"
+        },
     }
     return out, meta
 
@@ -314,6 +318,8 @@ def record_fuzz() -> tuple[dict[str, np.ndarray], dict[str, Any]]:
             report = run_fuzz(config)
         (ctrl,) = RecordingController.instances
         (run,) = ctrl.runs
+        if report.counts["foreign_exception"] or report.counts["valid_refused"] or report.counts["bad_accepted"]:
+            raise RuntimeError(f"episode {e} did not run as the fuzzer runs it: {report.exceptions}")
         robot, dt, strategy = config.setting(e)
         arrays = call_arrays(run.calls, ctrl.robot.nq)
         arrays["episode"] = np.full(len(run.calls), len(episodes), dtype=np.int64)
@@ -330,7 +336,7 @@ def record_fuzz() -> tuple[dict[str, np.ndarray], dict[str, Any]]:
                 "refused": len(run.calls) - valid,
                 "refused_not_stored": run.not_stored,
                 "fuzz_ticks": report.ticks,
-                "fuzz_failures": report.failures(),
+                "fuzz_failures": [f for f in report.failures() if "CPU time" not in f],  # (the machine's)
             }
         )
         print(f"fuzz episode {e}: {robot} dt {1e3 * dt:g} ms {strategy}: {len(run.calls)} calls", file=sys.stderr)

@@ -74,11 +74,15 @@ def _recorder() -> Any:
     return module
 
 
+@functools.cache
 def _meta() -> dict[str, Any]:
+    """``commands.json``: what made the recordings (read once; not to be changed)."""
     return json.loads((DATA / "commands.json").read_text())
 
 
+@functools.cache
 def _load(name: str) -> dict[str, np.ndarray]:
+    """A recording's arrays (read once; not to be changed: the tests copy what they modify)."""
     with np.load(DATA / name, allow_pickle=False) as f:
         return {k: f[k] for k in f.files}
 
@@ -173,7 +177,7 @@ def replay_calls(ctrl: Controller, calls: dict[str, np.ndarray]) -> dict[str, np
     return {**out, "status": status}
 
 
-FUZZ = _meta()["fuzz"]["episodes"] if (DATA / "commands.json").is_file() else []
+FUZZ = _meta()["fuzz"]["episodes"]
 
 
 @functools.cache

@@ -1,7 +1,7 @@
 """Record today's control commands (issue 33), so the C++ port of the tick can be checked against them.
 
-Run from the source tree: ``QPNSO_COMPILE=off python tests/data/record_commands.py`` (about two minutes once the
-Numba kernels are cached).  It writes, beside this file:
+Run from the source tree: ``QPNSO_COMPILE=off python tests/data/record_commands.py`` (30 s once the Numba
+kernels are cached, 4 min the first time).  It writes, beside this file:
 
 * ``commands_main.npz``: the main job, ``qpnso solve examples/trajectories/guidance_lwr4p.csv`` with the CLI's
   defaults (the LWR4+ with its flange as the tool, ``ControllerConfig()``, the start configuration

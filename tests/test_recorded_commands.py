@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import SOURCE_TREE
 
 from qpnso.control.config import ControllerConfig
 from qpnso.control.controller import Controller
@@ -34,7 +35,6 @@ from qpnso.errors import QpnsoError
 from qpnso.model.robot import load_robot_spec
 
 DATA = Path(__file__).resolve().parent / "data"
-SOURCE_TREE = Path(__file__).resolve().parent.parent
 
 TOLERANCE = {"dq": (1e-9, 1e-9), "q_des": (2e-11, 0.0), "tau": (1e-9, 1e-9)}
 """(atol, rtol) of each command entry: |replayed − recorded| ≤ atol + rtol·|recorded| (rad/s, rad, N·m).

@@ -72,3 +72,14 @@ def test_the_controller_says_what_evaluates_its_state(monkeypatch, tmp_path) -> 
     got = ctrl.evaluate._fn.evaluate_in_place(q, zero7, zero6, zero6).copy()
     want = np.array(ctrl.evaluate._fn.function(np.concatenate([q, zero7, zero6, zero6])).full()).ravel()
     np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+
+
+def test_a_cached_library_is_used_from_the_constructor_on(tmp_path, monkeypatch) -> None:
+    """Once compiled (``sync``), a new FastFunction of the same function loads the cached library at once, in the
+    background mode too: no runtime loaded meanwhile, no thread waiting for a compile."""
+    monkeypatch.setenv("QPNSO_CACHE_DIR", str(tmp_path))
+    if shutil.which("cc") is None:
+        pytest.skip("no C compiler")
+    assert FastFunction(casadi_function(), "sync").compiled
+    again = FastFunction(casadi_function(), "background")
+    assert again.runtime == "compiled C" and again._thread is None

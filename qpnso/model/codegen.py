@@ -78,6 +78,11 @@ class CompileJob:
     ) -> None:
         self.name, self.lib, self._proc, self._job = name, lib, proc, job
 
+    @property
+    def ready(self) -> bool:
+        """The library was in the cache already: :meth:`result` loads it without waiting."""
+        return self.lib is not None and self._proc is None and self._job is None and self.lib.is_file()
+
     def result(self, timeout: float = STALE_SECONDS) -> "_core.CasadiFunction | None":
         """The compiled library loaded by the core once compiled, or None (no compiler, compile failed, timed
         out)."""
@@ -222,7 +227,6 @@ class FastFunction:
 
     def __init__(self, fn: ca.Function, mode: str | None = None) -> None:
         self.function = fn
-        self.compiled = False
         self._lock = threading.Lock()
         self._in = [np.zeros(fn.numel_in(i)) for i in range(fn.n_in())]
         self._out = [np.zeros(fn.numel_out(i)) for i in range(fn.n_out())]
@@ -230,16 +234,21 @@ class FastFunction:
         for i in range(fn.n_out()):
             if not fn.sparsity_out(i).is_dense():
                 raise ValueError(f"{fn.name()}: output {i} must be dense")
-        self._core = load_runtime(fn)
-        self._call = self._core.bind(self._in, self._out)
         self._thread: threading.Thread | None = None
         m = compile_mode(mode)
-        if m == "sync":
-            self._use(start_compile(fn))
-        elif m == "background":  # the compiler starts now, so it runs to the end even if Python exits soon
-            job = start_compile(fn, background=True)
+        # (the compiler starts now, so it runs to the end even if Python exits soon)
+        job = None if m == "off" else start_compile(fn, background=m == "background")
+        compiled = job.result() if job is not None and (m == "sync" or job.ready) else None
+        self._core = compiled if compiled is not None else load_runtime(fn)  # (the runtime until compiled)
+        self._call = self._core.bind(self._in, self._out)
+        if job is not None and compiled is None and m == "background":
             self._thread = threading.Thread(target=self._use, args=(job,), daemon=True, name=f"qpnso-cc-{fn.name()}")
             self._thread.start()
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the compiled library evaluates the function now."""
+        return self._core.runtime == "compiled C"
 
     @property
     def runtime(self) -> str:
@@ -251,7 +260,6 @@ class FastFunction:
         if compiled is not None:
             with self._lock:
                 self._core, self._call = compiled, compiled.bind(self._in, self._out)
-                self.compiled = True
 
     def use_output(self, k: int, out: np.ndarray) -> None:
         """Write output ``k`` into ``out`` from now on (a C-contiguous float64 vector of its size, e.g. a

@@ -5,6 +5,7 @@
 #include <dlfcn.h>
 
 #include <algorithm>
+#include <map>
 #include <cstring>
 #include <mutex>
 #include <stdexcept>
@@ -50,7 +51,27 @@ F symbol(void* handle, const std::string& name, bool required = true) {
   return reinterpret_cast<F>(s);
 }
 
-std::mutex runtime_mutex;  // libcasadi's C API keeps one global list of loaded Functions: not thread-safe
+std::recursive_mutex runtime_mutex;  // libcasadi's C API keeps one global list of loaded Functions: not thread-safe
+// (recursive: an Impl released while load_runtime unwinds takes it again)
+
+// Which entries of libcasadi's list (by id, per loaded libcasadi) a live CasadiFunction still uses. The C API
+// can only pop the list's last entry, so a released Function's entry is popped once every entry above it is
+// released too: without this, each load kept its Function (about 1 MB for a tick's state function) for good.
+std::map<void*, std::vector<bool>>& runtime_live() {
+  static std::map<void*, std::vector<bool>> live;
+  return live;
+}
+
+// Pops the dead entries at the top of libcasadi's list (runtime_mutex held).
+void pop_released(void* handle) {
+  std::vector<bool>& live = runtime_live()[handle];
+  auto n_loaded = symbol<int (*)()>(handle, "casadi_c_n_loaded");
+  auto pop = symbol<int (*)()>(handle, "casadi_c_pop");
+  while (!live.empty() && !live.back() && n_loaded() == static_cast<int>(live.size())) {
+    pop();
+    live.pop_back();
+  }
+}
 }  // namespace
 
 struct CasadiFunction::Impl {
@@ -90,8 +111,13 @@ struct CasadiFunction::Impl {
 
   ~Impl() {
     if (runtime) {
+      std::lock_guard<std::recursive_mutex> lock(runtime_mutex);
       if (release_id) release_id(id, mem);
       if (decref_id) decref_id(id);
+      if (id >= 0) {
+        runtime_live()[handle].at(id) = false;
+        pop_released(handle);
+      }
     } else {
       if (release) release(mem);
       if (decref) decref();
@@ -133,7 +159,7 @@ CasadiFunction CasadiFunction::load_compiled(const std::string& library, const s
 
 CasadiFunction CasadiFunction::load_runtime(const std::string& libcasadi, const std::string& serialized_file,
                                             const std::string& name) {
-  std::lock_guard<std::mutex> lock(runtime_mutex);
+  std::lock_guard<std::recursive_mutex> lock(runtime_mutex);
   auto p = std::make_unique<Impl>();
   p->name = name;
   p->runtime = true;
@@ -151,9 +177,16 @@ CasadiFunction CasadiFunction::load_runtime(const std::string& libcasadi, const 
   if (push_file(serialized_file.c_str()))
     throw std::runtime_error("CasADi runtime: cannot read Functions from " + serialized_file);
   const int after = n_loaded();
+  std::vector<bool>& live = runtime_live()[h];
+  if (static_cast<int>(live.size()) < before) live.resize(before, true);  // (pushed by others: never popped)
+  live.resize(after, false);  // (entries of the file other than ours are released at once)
   for (int i = before; i < after && p->id < 0; ++i)
     if (name == name_id(i)) p->id = i;
-  if (p->id < 0) throw std::runtime_error("CasADi runtime: no Function " + name + " in " + serialized_file);
+  if (p->id < 0) {
+    pop_released(h);
+    throw std::runtime_error("CasADi runtime: no Function " + name + " in " + serialized_file);
+  }
+  live[p->id] = true;
   const int id = p->id;
   p->f_id = symbol<decltype(p->f_id)>(h, "casadi_c_eval_id");
   p->release_id = symbol<void (*)(int, int)>(h, "casadi_c_release_id");

@@ -10,8 +10,6 @@
 
 from __future__ import annotations
 
-import glob
-import os
 import shutil
 import subprocess
 import sys
@@ -23,6 +21,7 @@ import pytest
 from conftest import SOURCE_TREE
 
 from qpnso import _core
+from qpnso.model import codegen
 
 EXAMPLE = SOURCE_TREE / "examples" / "cpp"
 
@@ -55,10 +54,8 @@ def assert_same(got, want):
 
 
 def libcasadi() -> str:
-    """libcasadi of the casadi package imported here (its name carries CasADi's soname version)."""
-    found = sorted(glob.glob(os.path.join(os.path.dirname(ca.__file__), "libcasadi.so.*")))
-    assert found, "no libcasadi in the casadi wheel"
-    return found[0]
+    """libcasadi of the casadi package imported here (qpnso.model.codegen.libcasadi: the one FastFunction loads)."""
+    return str(codegen.libcasadi())
 
 
 @pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler: the core uses CasADi's runtime then")

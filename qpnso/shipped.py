@@ -3,11 +3,11 @@ benchmark's committed problem set and the experiments' pre-registration.
 
 In the source tree they are folders at its top (``models/``, ``examples/scenarios/``, ``solvers/problems/``,
 ``docs/preregistration/``); a wheel carries them inside the package, as ``qpnso/_models/``,
-``qpnso/_scenarios/``, ``qpnso/_solver_problems/``, ``qpnso/_preregistration/`` (``setup.py`` maps the folders
+``qpnso/_scenarios/``, ``qpnso/_solver_problems/``, ``qpnso/_preregistration/`` (``CMakeLists.txt`` installs the folders
 onto these subpackages, with the files of :data:`SHIPPED`).  :func:`shipped_dir` finds them either way: an
 installed wheel, a source tree on ``sys.path`` or an editable install.
 
-This module uses the standard library only: ``setup.py`` reads :data:`SHIPPED` from it before qpnso's
+This module uses the standard library only: ``CMakeLists.txt`` reads :data:`SHIPPED` from it (runpy) before qpnso's
 dependencies are installed.
 """
 

@@ -3,12 +3,14 @@ three-valued verdict on each claim (issue 32; ../shared/docs/EVIDENCE.md).
 
 * **Readings.**  [M 24] divides a trial's hand work by its path length; the path is either the one the tool
   took (``measured``: rewards a wandering tool) or the one the surgeon intended (``nominal``).  A verdict is
-  taken under both; when they disagree the claim is ``untestable`` (the two readings disagree).
+  taken under every reading that passes its controls (pre-registration version 2: :func:`valid_readings`;
+  version 1 made a claim untestable when the readings disagreed); with none left, the claim is ``untestable``.
 * **Controls**, on the trials of the first ``control_reps`` repetitions: the negative control compares
   ``damped`` with ``damped-again`` (the same strategy, other noise draws: the test must not call it
   significant); the positive control compares ``damped`` with ``damped-light`` (felt mass −30 %: the metric
-  must fall and the test must detect it at 0.01).  A metric whose controls fail cannot support a verdict:
-  its claims are ``untestable``, with the control that failed.
+  must fall and the test must detect it at 0.01).  A reading whose controls fail is set aside (version 2); a
+  metric with no reading left cannot support a verdict: its claims are ``untestable``, with the control that
+  failed.
 * **Premise.**  A claim about the fixed posture needs a fixed posture that differs from elbow up
   (:attr:`.work_areas.Postures.discriminates`, in every work area at the run's rotor inertia); else it is
   ``untestable`` (the design compares a posture with itself).

@@ -5,6 +5,7 @@ MuJoCo, the friction compensation of the measured self-motion, and [M]'s active 
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -432,3 +433,10 @@ def test_a_tool_moved_off_a_singular_configuration_is_no_internal_error(bare, st
         cmd = ctrl.step(moved, np.zeros(7))
         assert not cmd.status & Status.INTERNAL_ERROR, cmd.status
         assert np.all(np.isfinite(cmd.tau)) and np.all(np.isfinite(cmd.dq))
+
+
+def test_no_damping_ratio_takes_no_square_root() -> None:
+    """A negative stiffness with no damping ratio (ζ = 0) gives finite gains, as the law has no √(K·m) term then
+    (``2·0·√(−30·m)`` was NaN: the tick stopped with INTERNAL_ERROR on every tick of such a controller)."""
+    K, D = impedance_gains(-30.0, 10.0, 0.0, 0.04, DT, 0.5)
+    assert math.isfinite(K) and math.isfinite(D) and D == pytest.approx(min(10.0, 0.5 * 0.04 / DT))

@@ -47,7 +47,7 @@ def impedance_gains(stiffness, damping, damping_ratio, inertia, dt, margin):
     projector could not be formed): no impedance."""
     if not inertia > 0.0:
         return 0.0, 0.0
-    d = damping + 2.0 * damping_ratio * math.sqrt(stiffness * inertia)
+    d = damping + (2.0 * damping_ratio * math.sqrt(stiffness * inertia) if damping_ratio > 0.0 else 0.0)
     d = min(max(d, stiffness * dt), margin * inertia / dt)
     return min(stiffness, d / dt), d
 

@@ -57,7 +57,8 @@ class NullspaceLaw:
     def torque(self, dq: np.ndarray, inertia: float = 0.0) -> np.ndarray:
         """The law's torque (N·m) at the joint velocity ``dq`` (rad/s) on a self-motion of ``inertia``
         (kg·m²; it enters only through ``damping_ratio``), unbounded."""
-        damping = self.damping + 2.0 * self.damping_ratio * math.sqrt(self.stiffness * inertia)
+        ratio = self.damping_ratio
+        damping = self.damping + (2.0 * ratio * math.sqrt(self.stiffness * inertia) if ratio > 0.0 else 0.0)
         spring = 0.0 if self.offset is None else self.stiffness * self.offset
         target = 0.0 if self.velocity is None else self.velocity
         return spring + damping * (target - dq)
@@ -287,7 +288,7 @@ class RomModulation(Strategy):
     :func:`qpnso.elbow.closed_form.srs_ik` on the branch of ``q``) or, where it has none (another arm, a
     singular or unreachable pose), the first-order step towards it; ``τ = K(ns)(q_des − q) − D q̇``.
     Inside the ROM the null space is only damped, as in the paper.  A tick's set-point is computed once
-    (:meth:`fill` asks :meth:`level2` and :meth:`nullspace_torque` with the same state).
+    (:meth:`fill` asks :meth:`level2` and :meth:`nullspace_law` with the same state).
     """
 
     name = "rom"

@@ -473,11 +473,11 @@ def command_torque(dq_meas, t):
     inertia = selfmotion_inertia(LA, W, LL) if ok else 0.0
     K, D = impedance_gains(c.stiffness, c.damping, c.damping_ratio, inertia, P.dt, P.nullspace_damping_margin)
     r.null_inertia, r.null_stiffness, r.null_damping = inertia, K, D
-    tau_null = K * (c.offset + (c.spring_cmd * P.dt) * dq) + D * (c.velocity + c.damp_cmd * dq - dq_meas)
-    keep_out_torque(t.problem, r, P, t.memory, dq_meas, tau_null)  # (the keep-out rows' wall: every strategy)
     if not ok:
         c.tau[:] = s.g
         return
+    tau_null = K * (c.offset + (c.spring_cmd * P.dt) * dq) + D * (c.velocity + c.damp_cmd * dq - dq_meas)
+    keep_out_torque(t.problem, r, P, t.memory, dq_meas, tau_null)  # (the keep-out rows' wall: every strategy)
     tau = s.g + project_torque(s.J, W, LL, tau_null)
     if P.friction_compensation > 0.0:
         tau += selfmotion_friction(s.J, W, LL, dq_meas, P.friction_tau_max, P.friction_beta, P.friction_compensation)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
+from qpnso.elbow.intervals import least_norm_step
 from qpnso.linalg import least_norm_line
 from qpnso.model.costs import CostModel
 from qpnso.model.robot import Robot
@@ -78,7 +79,7 @@ class VirtualArm:
             if size < ANCHOR_TOL:
                 break
             J = self._jacobian(q)
-            q = q + np.linalg.lstsq(J, error, rcond=None)[0]  # (J⁺e, defined at a singular J too)
+            q = q + least_norm_step(J, error)  # (J⁺e, defined at a singular J too)
             if size < ANCHOR_ONE_STEP:
                 error = None  # (its residual is the next tick's)
                 break

@@ -478,7 +478,7 @@ def _newton(
     robot: Robot, q: np.ndarray, target: pin.SE3, tol: float, free: np.ndarray | None = None
 ) -> Generator[None, None, np.ndarray]:
     """Newton iterations on the tool pose, moving only the ``free`` joints (all: the least-norm step
-    :func:`_least_norm_step`; six: :func:`_square_step`), yielding after each: returns the corrected
+    :func:`least_norm_step`; six: :func:`_square_step`), yielding after each: returns the corrected
     configuration (SingularityError if 30 do not reach 1e-9)."""
     q = q.copy()
     for _ in range(30):
@@ -487,7 +487,7 @@ def _newton(
             return q
         jac = _tool_jacobian(robot, q)
         if free is None:
-            q += _least_norm_step(jac, err)
+            q += least_norm_step(jac, err)
         else:
             q[free] += _square_step(jac[:, free], err)
         yield
@@ -496,7 +496,7 @@ def _newton(
     return q
 
 
-def _least_norm_step(jac: np.ndarray, err: np.ndarray) -> np.ndarray:
+def least_norm_step(jac: np.ndarray, err: np.ndarray) -> np.ndarray:
     """``J⁺ err`` (rad) for the 6×7 tool Jacobian ``jac`` (C-ordered): the Householder QR kernel
     :func:`qpnso.linalg.least_norm_line` (1 µs of arithmetic, where ``np.linalg.lstsq`` spends ~50 µs in Python),
     ``np.linalg.lstsq`` where that finds ``J`` rank-deficient."""
